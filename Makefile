@@ -1,0 +1,35 @@
+# Two entry points for a fresh machine: `make demo` and `make test`.
+# Both create .venv and install matscan into it. torch is pinned to the CPU build
+# first, so nothing pulls a CUDA torch.
+
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DEMO := demo
+
+.PHONY: demo test lint bench clean
+
+$(STAMP): pyproject.toml Makefile
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --disable-pip-version-check torch==2.13.0
+	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/matscan simulate @sample --out $(DEMO)/capture --overwrite
+	$(BIN)/matscan sheet $(DEMO)/capture --maps @sample --out $(DEMO)/contact_sheet.png
+	@echo "demo: open $(DEMO)/contact_sheet.png"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest
+
+lint: $(STAMP)
+	$(BIN)/ruff check matscan tests bench tools
+	$(BIN)/ruff format --check matscan tests bench tools
+
+bench: $(STAMP)
+	$(BIN)/python bench/render.py
+
+clean:
+	rm -rf $(VENV) $(DEMO) .pytest_cache

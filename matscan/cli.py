@@ -1,0 +1,204 @@
+"""The ``matscan`` command: parses arguments, calls the library, prints one summary line.
+
+Bad input exits with status 2 and one line ``matscan: error: <file>: <problem>``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from matscan import __version__
+from matscan.errors import MatscanError
+
+SAMPLE_PREFIX = "@"
+
+
+def _maps_arg(text: str) -> Path:
+    """A map set folder, or ``@name`` for a built-in sample map set."""
+    from matscan.samples import sample_maps_path
+
+    return sample_maps_path(text[1:]) if text.startswith(SAMPLE_PREFIX) else Path(text)
+
+
+def _capture_arg(text: str) -> Path:
+    from matscan.samples import sample_capture_path
+
+    return sample_capture_path(text[1:]) if text.startswith(SAMPLE_PREFIX) else Path(text)
+
+
+def _vector(text: str, n: int, name: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise MatscanError(f"{name}: {text!r} is not {n} comma-separated numbers") from None
+    if len(values) != n:
+        raise MatscanError(f"{name}: {text!r} is not {n} comma-separated numbers")
+    return values
+
+
+def cmd_simulate(args: argparse.Namespace) -> str:
+    from matscan.capture.virtual import CameraModel, simulate
+    from matscan.mapset import read_mapset
+    from matscan.rig import resolve_rig
+
+    t0 = time.perf_counter()
+    rig = resolve_rig(args.rig)
+    maps = read_mapset(_maps_arg(args.maps))
+    bits = args.bits or (8 if args.encoding == "srgb" else 32)
+    camera = CameraModel(
+        exposure=args.exposure, read_noise=args.noise, full_well=args.full_well, encoding=args.encoding, bits=bits
+    )
+    lights = None if rig.per_image_geometry else rig.subset(args.lights)
+    out = simulate(
+        maps,
+        rig,
+        args.out,
+        lights=lights,
+        camera=camera,
+        seed=args.seed,
+        size=args.size,
+        overwrite=args.overwrite,
+        progress=True,
+    )
+    size = args.size or maps.size[0]
+    count = 9 if rig.per_image_geometry else len(lights or ())
+    return (
+        f"simulate: wrote {count} photos ({size}×{size}, rig {rig.name}, {args.encoding} {bits}-bit, "
+        f"noise {args.noise:g}) to {out} in {time.perf_counter() - t0:.1f} s"
+    )
+
+
+def cmd_render(args: argparse.Namespace) -> str:
+    import numpy as np
+
+    from matscan.color import linear_to_srgb
+    from matscan.imagefile import write_image
+    from matscan.mapset import read_mapset
+    from matscan.render import render, surface_points
+    from matscan.rig import LightSet, resolve_rig
+
+    t0 = time.perf_counter()
+    rig = resolve_rig(args.rig)
+    maps = read_mapset(_maps_arg(args.maps))
+    pos = _vector(args.light, 3, "--light")
+    if pos[2] <= 0:
+        raise MatscanError(f"--light: z = {pos[2]:g} is not above the sample plane (z > 0)")
+    lights = LightSet.points([pos], rig.camera.position_mm, rig.reference_distance_mm, args.intensity, args.exponent)
+    points = surface_points(rig.field_mm, maps.size)
+    img = render(maps.diffuse, maps.specular, maps.roughness, maps.normal, lights, points)[0]
+    if maps.emissive is not None:
+        img = img + maps.emissive
+    if maps.alpha is not None:
+        img = img * maps.alpha
+    out = Path(args.out)
+    suffix = out.suffix.lower()
+    if suffix == ".exr":
+        write_image(out, img.permute(1, 2, 0).numpy(), bits=32)
+    elif suffix == ".png":
+        write_image(out, linear_to_srgb(img.clamp(0, 1)).permute(1, 2, 0).numpy(), bits=8)
+    else:
+        raise MatscanError(f"--out: {out.name}: write .png (sRGB, 8-bit) or .exr (linear float)")
+    peak = float(np.percentile(img.numpy(), 99.9))
+    return (
+        f"render: wrote {out} ({maps.size[1]}×{maps.size[0]}, light at {pos} mm, "
+        f"99.9th percentile {peak:.3f}) in {time.perf_counter() - t0:.1f} s"
+    )
+
+
+def cmd_sheet(args: argparse.Namespace) -> str:
+    from matscan.capture import load_capture
+    from matscan.mapset import read_mapset
+    from matscan.report.sheet import capture_tiles, contact_sheet, map_tiles, save_sheet
+
+    tiles = []
+    source = _capture_arg(args.folder)
+    if (source / "capture.json").is_file():
+        cap = load_capture(source)
+        labels = [
+            f"light {k}" if k is not None else Path(f).stem for k, f in zip(cap.light_indices, cap.files, strict=True)
+        ]
+        tiles += capture_tiles(cap.images, labels)
+        tiles += capture_tiles(list(cap.backlight.values()), list(cap.backlight)) if cap.backlight else []
+    else:
+        tiles += map_tiles(read_mapset(_maps_arg(args.folder)).present())
+    if args.maps:
+        tiles += map_tiles(read_mapset(_maps_arg(args.maps)).present())
+    columns = args.columns or (8 if len(tiles) > 16 else None)
+    save_sheet(args.out, contact_sheet(tiles, columns=columns))
+    return f"sheet: wrote {args.out} ({len(tiles)} tiles)"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="matscan", description="Photographs of a flat material under known lights → material maps."
+    )
+    parser.add_argument("--version", action="version", version=f"matscan {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("simulate", help="render a capture folder of a map set through a rig (the virtual rig)")
+    p.add_argument("maps", metavar="MAPS", help="map set folder, or @sample for the built-in sample")
+    p.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to write")
+    p.add_argument("--rig", default="dome24", help="built-in rig name or rig .json file (default dome24)")
+    p.add_argument("--lights", default=None, help="named subset (24, 6, …) or indices like 0,4,8 (default all)")
+    p.add_argument("--size", type=int, default=None, help="resample maps to SIZE×SIZE pixels first")
+    p.add_argument(
+        "--noise",
+        type=float,
+        default=0.002,
+        metavar="SIGMA",
+        help="read noise std (fraction of full scale); >0 also adds photon shot noise; 0 = noise-free (default 0.002)",
+    )
+    p.add_argument(
+        "--full-well", type=float, default=20000.0, help="electrons at full scale, sets shot noise (default 20000)"
+    )
+    p.add_argument("--exposure", type=float, default=1.0, help="radiance multiplier before the sensor (default 1)")
+    p.add_argument("--encoding", choices=["srgb", "linear"], default="srgb", help="file encoding (default srgb)")
+    p.add_argument(
+        "--bits",
+        type=int,
+        choices=[8, 16, 32],
+        default=None,
+        help="8/16-bit PNG, or 32 = float EXR (default 8 for srgb, 32 for linear)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("render", help="render a map set under one point light")
+    p.add_argument("maps", metavar="MAPS", help="map set folder, or @sample")
+    p.add_argument("--out", required=True, metavar="IMAGE", help=".png (sRGB 8-bit) or .exr (linear float)")
+    p.add_argument("--light", required=True, metavar="X,Y,Z", help="light position in mm (sample frame)")
+    p.add_argument("--rig", default="dome24", help="rig giving camera, field and reference distance")
+    p.add_argument("--intensity", type=float, default=1.0, help="light intensity (default 1)")
+    p.add_argument("--exponent", type=float, default=0.0, help="emission exponent m (default 0, isotropic)")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")
+    p.add_argument("folder", metavar="FOLDER", help="capture or map set folder (or @sample)")
+    p.add_argument("--maps", default=None, help="also show this map set (folder or @sample)")
+    p.add_argument("--out", required=True, help="PNG to write")
+    p.add_argument("--columns", type=int, default=None)
+    p.set_defaults(func=cmd_sheet)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        print(args.func(args))
+    except MatscanError as exc:
+        print(f"matscan: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("matscan: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

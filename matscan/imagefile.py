@@ -1,0 +1,213 @@
+"""Reading and writing image files: PNG (8/16-bit), JPEG, TIFF, EXR, and RAW.
+
+Arrays here are NumPy, (H, W, C) with C in {1, 3, 4}, RGB order (OpenCV's BGR
+is converted at this boundary and nowhere else). Integer files are returned as
+float32 code values scaled to [0, 1] (no transfer function applied: the caller
+knows whether a file is sRGB or linear); EXR and float TIFF are returned as
+stored. Writers take a temporary name and rename it when the file is complete.
+
+Libraries: OpenCV for PNG/JPEG (exact 16-bit PNG), tifffile for TIFF, the
+OpenEXR package for EXR (exact float32), rawpy for RAW (the ``raw`` extra).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from matscan.errors import MatscanError, input_error
+
+cv2.setNumThreads(1)
+
+#: File endings matscan reads as images, and which reader handles them.
+PNG_LIKE = {".png", ".jpg", ".jpeg"}
+TIFF = {".tif", ".tiff"}
+EXR = {".exr"}
+RAW = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw"}
+READABLE = PNG_LIKE | TIFF | EXR | RAW
+
+
+@dataclass(frozen=True)
+class ImageData:
+    """Pixels of an image file and how they were stored.
+
+    ``pixels`` is float32 (H, W, C). ``kind`` is ``"int"`` (code values scaled
+    to [0, 1], transfer function unknown), ``"float"`` (EXR or float TIFF,
+    linear), or ``"raw"`` (a camera RAW developed linearly). ``bits`` is the
+    stored bit depth (8, 16, 32).
+    """
+
+    pixels: np.ndarray
+    kind: str
+    bits: int
+
+
+def _suffix(path: Path) -> str:
+    return path.suffix.lower()
+
+
+def read_image(path: str | Path) -> ImageData:
+    """Read an image file; errors name the file and the problem."""
+    path = Path(path)
+    suffix = _suffix(path)
+    if suffix not in READABLE:
+        raise input_error(
+            path, f"unsupported image type {suffix or '(none)'!r} (expected one of {', '.join(sorted(READABLE))})"
+        )
+    if not path.is_file():
+        raise input_error(path, "no such file")
+    try:
+        if suffix in EXR:
+            return _read_exr(path)
+        if suffix in TIFF:
+            return _read_tiff(path)
+        if suffix in RAW:
+            return _read_raw(path)
+        return _read_cv2(path)
+    except MatscanError:
+        raise
+    except Exception as exc:  # decoders raise many types for a corrupt file
+        raise input_error(path, f"cannot read as {suffix[1:].upper()} ({type(exc).__name__}: {exc})") from None
+
+
+def _to_float(arr: np.ndarray, path: Path) -> tuple[np.ndarray, str, int]:
+    if arr.dtype == np.uint8:
+        return arr.astype(np.float32) / 255.0, "int", 8
+    if arr.dtype == np.uint16:
+        return arr.astype(np.float32) / 65535.0, "int", 16
+    if arr.dtype in (np.float32, np.float64, np.float16):
+        return arr.astype(np.float32), "float", 32
+    raise input_error(path, f"unsupported pixel type {arr.dtype}")
+
+
+def _channels_last(arr: np.ndarray) -> np.ndarray:
+    return arr[:, :, None] if arr.ndim == 2 else arr
+
+
+def _read_cv2(path: Path) -> ImageData:
+    data = np.fromfile(str(path), dtype=np.uint8)
+    arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if arr is None:
+        raise input_error(path, f"cannot read as {_suffix(path)[1:].upper()} (corrupt or not an image)")
+    arr = _channels_last(arr)
+    if arr.shape[2] == 3:
+        arr = arr[:, :, ::-1]
+    elif arr.shape[2] == 4:
+        arr = arr[:, :, [2, 1, 0, 3]]
+    pixels, kind, bits = _to_float(np.ascontiguousarray(arr), path)
+    return ImageData(pixels, kind, bits)
+
+
+def _read_tiff(path: Path) -> ImageData:
+    import tifffile
+
+    arr = _channels_last(np.asarray(tifffile.imread(str(path))))
+    if arr.ndim != 3:
+        raise input_error(path, f"expected a 2-D image, got an array of shape {arr.shape}")
+    pixels, kind, bits = _to_float(arr, path)
+    return ImageData(pixels, kind, bits)
+
+
+def _read_exr(path: Path) -> ImageData:
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as f:
+        channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
+    if "RGB" in channels:
+        arr = channels["RGB"]
+    elif "RGBA" in channels:
+        arr = channels["RGBA"]
+    elif all(c in channels for c in "RGB"):
+        arr = np.stack([channels[c] for c in "RGB"], axis=-1)
+    elif "Y" in channels:
+        arr = channels["Y"]
+    elif len(channels) == 1:
+        arr = next(iter(channels.values()))
+    else:
+        raise input_error(path, f"no RGB or Y channels (found {', '.join(channels)})")
+    return ImageData(_channels_last(arr).astype(np.float32), "float", 32)
+
+
+def _read_raw(path: Path) -> ImageData:
+    try:
+        import rawpy
+    except ImportError:
+        raise input_error(path, "reading RAW files needs the 'raw' extra: pip install 'matscan[raw]'") from None
+    with rawpy.imread(str(path)) as raw:
+        rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=True, user_flip=0)
+    return ImageData(rgb.astype(np.float32) / 65535.0, "raw", 16)
+
+
+def _tmp_name(path: Path) -> Path:
+    return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+
+
+def write_image(path: str | Path, pixels: np.ndarray, bits: int = 8, header: dict | None = None) -> None:
+    """Write (H, W, C) pixels; C in {1, 3, 4}; RGB order.
+
+    PNG/JPEG/TIFF with ``bits`` 8 or 16 take values in [0, 1] (clipped, rounded);
+    TIFF and EXR with ``bits`` 32 store float32 exactly (EXR always does).
+    ``header`` adds string attributes to an EXR file.
+    """
+    path = Path(path)
+    suffix = _suffix(path)
+    arr = _channels_last(np.asarray(pixels))
+    if arr.ndim != 3 or arr.shape[2] not in (1, 3, 4):
+        raise MatscanError(f"{path}: cannot write an image of shape {arr.shape}")
+    tmp = _tmp_name(path)
+    try:
+        if suffix in EXR:
+            _write_exr(tmp, arr.astype(np.float32), header or {})
+        elif suffix in TIFF:
+            import tifffile
+
+            data = arr.astype(np.float32) if bits == 32 else _quantise(arr, bits)
+            tifffile.imwrite(
+                str(tmp),
+                data[:, :, 0] if data.shape[2] == 1 else data,
+                photometric=("minisblack" if data.shape[2] == 1 else "rgb"),
+            )
+        elif suffix in PNG_LIKE:
+            if bits not in (8, 16) or (bits == 16 and suffix != ".png"):
+                raise MatscanError(f"{path}: {suffix[1:].upper()} cannot hold {bits}-bit values")
+            data = _quantise(arr, bits)
+            if data.shape[2] == 3:
+                data = data[:, :, ::-1]
+            elif data.shape[2] == 4:
+                data = data[:, :, [2, 1, 0, 3]]
+            ok, buf = cv2.imencode(suffix, np.ascontiguousarray(data))
+            if not ok:
+                raise MatscanError(f"{path}: the encoder refused the image")
+            buf.tofile(str(tmp))
+        else:
+            raise MatscanError(f"{path}: cannot write {suffix or 'files without an ending'} (use .png, .tif or .exr)")
+        tmp.replace(path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _quantise(arr: np.ndarray, bits: int) -> np.ndarray:
+    top = (1 << bits) - 1
+    dtype = np.uint8 if bits == 8 else np.uint16
+    return np.rint(np.clip(arr.astype(np.float64), 0.0, 1.0) * top).astype(dtype)
+
+
+def _write_exr(path: Path, arr: np.ndarray, header: dict) -> None:
+    import OpenEXR
+
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    hdr.update({str(k): str(v) for k, v in header.items()})
+    c = arr.shape[2]
+    if c == 1:
+        channels = {"Y": np.ascontiguousarray(arr[:, :, 0])}
+    elif c == 3:
+        channels = {"RGB": np.ascontiguousarray(arr)}
+    else:
+        channels = {"RGBA": np.ascontiguousarray(arr)}
+    with OpenEXR.File(hdr, channels) as f:
+        f.write(str(path))

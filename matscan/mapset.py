@@ -1,0 +1,250 @@
+"""Map sets: the material maps in memory, and the map set folder on disk.
+
+A map set folder holds one file per map, named after the map (``diffuse``,
+``specular``, ``roughness``, ``normal``; optionally ``alpha``, ``metallic``,
+``basecolor``, ``emissive``, ``height``), each ``.png`` (8 or 16 bit), ``.tif``
+or ``.exr`` (shared/design.md, "Map set folder"). Encodings:
+
+=========  ========  ===================  ===========================  ============
+map        channels  in memory            in PNG / integer TIFF        default file
+=========  ========  ===================  ===========================  ============
+diffuse    3         linear [0, 1]        sRGB-encoded                 8-bit PNG
+specular   3         linear [0, 1]        sRGB-encoded                 8-bit PNG
+roughness  1         r in [0, 1]          linear                       16-bit PNG
+normal     3         unit vector          (n + 1)/2, linear            16-bit PNG
+alpha      1         [0, 1]               linear                       8-bit PNG
+metallic   1         [0, 1]               linear                       8-bit PNG
+basecolor  3         linear [0, 1]        sRGB-encoded                 8-bit PNG
+emissive   3         linear [0, 1]        sRGB-encoded                 8-bit PNG
+height     1         mm                   (h − min)/(max − min)        16-bit PNG
+=========  ========  ===================  ===========================  ============
+
+EXR and float TIFF files are linear; normals in them are stored (n + 1)/2 like
+in PNG, and height in millimetres. A grey map may have one channel or three
+equal ones. The writer adds ``mapset.json`` recording these conventions and the
+height range of a PNG height map.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from matscan.atomic import atomic_folder
+from matscan.color import linear_to_srgb, srgb_to_linear
+from matscan.errors import MatscanError, input_error
+from matscan.imagefile import read_image, write_image
+
+MAPSET_FORMAT = "matscan-maps/1"
+REQUIRED = ("diffuse", "specular", "roughness", "normal")
+OPTIONAL = ("alpha", "metallic", "basecolor", "emissive", "height")
+ENDINGS = (".png", ".tif", ".tiff", ".exr")
+
+
+@dataclass(frozen=True)
+class MapSpec:
+    channels: int
+    encoding: str  # "srgb", "linear", "normal", "height"
+    bits: int  # default PNG bit depth when written
+
+
+SPECS: dict[str, MapSpec] = {
+    "diffuse": MapSpec(3, "srgb", 8),
+    "specular": MapSpec(3, "srgb", 8),
+    "roughness": MapSpec(1, "linear", 16),
+    "normal": MapSpec(3, "normal", 16),
+    "alpha": MapSpec(1, "linear", 8),
+    "metallic": MapSpec(1, "linear", 8),
+    "basecolor": MapSpec(3, "srgb", 8),
+    "emissive": MapSpec(3, "srgb", 8),
+    "height": MapSpec(1, "height", 16),
+}
+
+#: The conventions written into every map set and output (design.md).
+CONVENTIONS: dict[str, Any] = {
+    "frame": "sample in z = 0, +z toward the camera, mm; row 0 at +y, column index grows with +x",
+    "normal": "tangent frame +x right, +y up (OpenGL), +z out; files hold (n + 1)/2",
+    "roughness": "perceptual r; GGX alpha = r^2; glossiness = 1 - r",
+    "diffuse": "albedo rho, linear in memory and EXR, sRGB-encoded in PNG",
+    "specular": "F0, linear in memory and EXR, sRGB-encoded in PNG",
+    "brdf": "f_r = rho/pi + D G F / (4 (n.l)(n.v)); GGX D, uncorrelated Smith G, Schlick F",
+    "height": "mm; PNG holds (h - min)/(max - min) with min and max in mapset.json",
+}
+
+
+@dataclass(frozen=True)
+class MapSet:
+    """A material's maps, each a float32 tensor (C, H, W) as in the table above."""
+
+    diffuse: Tensor
+    specular: Tensor
+    roughness: Tensor
+    normal: Tensor
+    alpha: Tensor | None = None
+    metallic: Tensor | None = None
+    basecolor: Tensor | None = None
+    emissive: Tensor | None = None
+    height: Tensor | None = None
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(H, W) in pixels."""
+        return (self.diffuse.shape[-2], self.diffuse.shape[-1])
+
+    def present(self) -> dict[str, Tensor]:
+        """The maps that are present, by name."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+
+    def check(self, where: str = "maps") -> MapSet:
+        """Check shapes and sizes; return self."""
+        size = self.size
+        for name, t in self.present().items():
+            c = SPECS[name].channels
+            if t.ndim != 3 or t.shape[0] != c:
+                raise MatscanError(f"{where}: {name} must be ({c}, H, W), got {tuple(t.shape)}")
+            if tuple(t.shape[-2:]) != size:
+                raise MatscanError(
+                    f"{where}: {name} is {t.shape[-1]}×{t.shape[-2]} pixels but diffuse is {size[1]}×{size[0]}"
+                )
+        return self
+
+    def crop(self, top: int, left: int, height: int, width: int) -> MapSet:
+        """A crop of every map."""
+        return replace(self, **{k: v[:, top : top + height, left : left + width] for k, v in self.present().items()})
+
+
+def normalize_normals(normal: Tensor) -> Tensor:
+    """Unit-length normals; a zero vector becomes (0, 0, 1)."""
+    length = normal.norm(dim=-3, keepdim=True)
+    up = torch.zeros_like(normal)
+    up[..., 2, :, :] = 1
+    return torch.where(length > 1e-8, normal / length.clamp_min(1e-8), up)
+
+
+def _find_file(folder: Path, name: str) -> Path | None:
+    found = [folder / f"{name}{e}" for e in ENDINGS if (folder / f"{name}{e}").is_file()]
+    if len(found) > 1:
+        raise input_error(folder, f"more than one {name} map ({', '.join(p.name for p in found)}); keep one")
+    return found[0] if found else None
+
+
+def _read_map(path: Path, name: str, meta: dict[str, Any]) -> Tensor:
+    spec = SPECS[name]
+    img = read_image(path)
+    px = img.pixels
+    c = px.shape[2]
+    if c == 4:
+        px = px[:, :, :3]
+        c = 3
+    if spec.channels == 1:
+        if c == 3:
+            spread = float(np.abs(px - px.mean(axis=2, keepdims=True)).max())
+            if spread > 2.5 / 255:
+                raise input_error(
+                    path,
+                    f"a {name} map must be grey: one channel or three equal ones (channels differ by {spread:.3f})",
+                )
+            px = px.mean(axis=2, keepdims=True)
+    elif c == 1:
+        px = np.repeat(px, 3, axis=2)
+    elif c == 2:
+        raise input_error(path, f"has 2 channels; a {name} map needs 3")
+    t = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).float()
+    if not torch.isfinite(t).all():
+        raise input_error(path, "holds NaN or infinite values")
+    linear_file = img.kind == "float"
+    if spec.encoding == "srgb" and not linear_file:
+        t = srgb_to_linear(t)
+    elif spec.encoding == "normal":
+        t = normalize_normals(t * 2 - 1)
+    elif spec.encoding == "height" and not linear_file:
+        rng = meta.get("height")
+        if not isinstance(rng, dict) or "min_mm" not in rng or "max_mm" not in rng:
+            raise input_error(
+                path, "an integer height map needs its range: mapset.json with height.min_mm and height.max_mm"
+            )
+        t = float(rng["min_mm"]) + t * (float(rng["max_mm"]) - float(rng["min_mm"]))
+    return t
+
+
+def read_mapset(folder: str | Path) -> MapSet:
+    """Read a map set folder; errors name the file and the problem."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise input_error(folder, "no such map set folder")
+    meta: dict[str, Any] = {}
+    meta_path = folder / "mapset.json"
+    if meta_path.is_file():
+        try:
+            meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise input_error(meta_path, f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    maps: dict[str, Tensor] = {}
+    for name in REQUIRED + OPTIONAL:
+        path = _find_file(folder, name)
+        if path is None:
+            if name in REQUIRED:
+                present = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in ENDINGS)
+                raise input_error(
+                    folder,
+                    f"no {name} map (expected {name}.png, .tif or .exr; found {', '.join(present) or 'no images'})",
+                )
+            continue
+        maps[name] = _read_map(path, name, meta)
+    size = maps["diffuse"].shape[-2:]
+    for name, t in maps.items():
+        if t.shape[-2:] != size:
+            path = _find_file(folder, name)
+            raise input_error(
+                path or folder,
+                f"is {t.shape[-1]}×{t.shape[-2]} pixels but the diffuse map is {size[1]}×{size[0]}",
+            )
+    return MapSet(**maps)
+
+
+def write_mapset(
+    folder: str | Path,
+    maps: MapSet,
+    file_format: str = "png",
+    overwrite: bool = False,
+    extra_meta: dict[str, Any] | None = None,
+) -> Path:
+    """Write a map set folder (``file_format`` ``png`` or ``exr``), atomically.
+
+    PNG bit depths follow the table above; EXR is float32 and exact.
+    """
+    if file_format not in ("png", "exr"):
+        raise MatscanError(f"format: {file_format!r} is not one of png, exr")
+    maps.check()
+    meta: dict[str, Any] = {"format": MAPSET_FORMAT, "size": list(maps.size), "conventions": CONVENTIONS, "files": {}}
+    if extra_meta:
+        meta.update(extra_meta)
+    with atomic_folder(folder, overwrite=overwrite) as tmp:
+        for name, t in maps.present().items():
+            spec = SPECS[name]
+            t = t.detach().float()
+            if spec.encoding == "normal":
+                t = (normalize_normals(t) + 1) / 2
+            if file_format == "exr":
+                data, bits = t, 32
+            else:
+                bits = spec.bits
+                if spec.encoding == "srgb":
+                    data = linear_to_srgb(t.clamp(0, 1))
+                elif spec.encoding == "height":
+                    lo, hi = float(t.min()), float(t.max())
+                    meta["height"] = {"min_mm": lo, "max_mm": hi}
+                    data = (t - lo) / (hi - lo) if hi > lo else torch.zeros_like(t)
+                else:
+                    data = t
+            file = f"{name}.{file_format}"
+            write_image(tmp / file, data.permute(1, 2, 0).numpy(), bits=bits)
+            meta["files"][name] = {"file": file, "bits": bits}
+        (tmp / "mapset.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+    return Path(folder)

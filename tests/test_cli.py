@@ -1,0 +1,88 @@
+"""The matscan command: summaries on success, one-line errors (no traceback) on bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from matscan.capture import load_capture
+from matscan.cli import main
+from matscan.imagefile import read_image
+
+
+def test_simulate_render_sheet(tmp_path, capsys):
+    assert main(["simulate", "@sample", "--out", str(tmp_path / "c"), "--lights", "6", "--size", "32"]) == 0
+    assert "wrote 6 photos" in capsys.readouterr().out
+    cap = load_capture(tmp_path / "c")
+    assert cap.light_indices == (0, 4, 8, 12, 16, 20) and cap.size == (32, 32)
+
+    assert main(["render", "@sample", "--out", str(tmp_path / "r.exr"), "--light", "0,0,225"]) == 0
+    assert read_image(tmp_path / "r.exr").pixels.shape == (256, 256, 3)
+    assert main(["render", "@sample", "--out", str(tmp_path / "r.png"), "--light", "100,0,100"]) == 0
+
+    assert main(["sheet", str(tmp_path / "c"), "--maps", "@sample", "--out", str(tmp_path / "s.png")]) == 0
+    assert read_image(tmp_path / "s.png").pixels.shape[2] == 3
+
+
+def test_simulate_exact_mode(tmp_path):
+    assert (
+        main(
+            [
+                "simulate",
+                "@sample",
+                "--out",
+                str(tmp_path / "c"),
+                "--lights",
+                "0,",
+                "--size",
+                "16",
+                "--noise",
+                "0",
+                "--encoding",
+                "linear",
+            ]
+        )
+        == 0
+    )
+    assert (tmp_path / "c" / "led_00.exr").is_file()
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["simulate", "nowhere", "--out", "x"], "nowhere: no such map set folder"),
+        (["simulate", "@nope", "--out", "x"], "@nope: not a built-in sample"),
+        (["simulate", "@sample", "--out", "x", "--lights", "7"], "lights: '7' is not a subset"),
+        (["simulate", "@sample", "--out", "x", "--rig", "dome99"], "not a built-in rig"),
+        (["simulate", "@sample", "--out", "x", "--encoding", "srgb", "--bits", "32"], "32-bit float files are linear"),
+        (["render", "@sample", "--out", "x.png", "--light", "0,0"], "--light: '0,0' is not 3"),
+        (["render", "@sample", "--out", "x.png", "--light", "0,0,-5"], "not above the sample plane"),
+        (["render", "@sample", "--out", "x.bmp", "--light", "0,0,5"], "write .png"),
+        (["sheet", "nowhere", "--out", "x.png"], "nowhere: no such map set folder"),
+    ],
+)
+def test_bad_input_is_one_line(tmp_path, monkeypatch, capsys, argv, words):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("matscan: error: ") and words in err
+    assert err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_console_script_reports_without_traceback(tmp_path):
+    bad = tmp_path / "cap"
+    bad.mkdir()
+    (bad / "capture.json").write_text(
+        '{"format": "matscan-capture/1", "rig": "dome24", "images": '
+        '[{"light": 0, "file": "led_00.png"}, {"light": 0, "file": "b.png"}]}'
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", "matscan.cli", "sheet", str(bad), "--out", str(tmp_path / "s.png")],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2
+    assert "light 0 appears twice" in proc.stderr and "Traceback" not in proc.stderr
+    assert sorted(p.name for p in bad.iterdir()) == ["capture.json"]

@@ -1,0 +1,106 @@
+"""Map set folders: every encoding round-trips within its quantisation; bad sets are named."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from conftest import random_maps
+
+from matscan.color import linear_to_srgb
+from matscan.errors import MatscanError
+from matscan.imagefile import write_image
+from matscan.mapset import MapSet, read_mapset, write_mapset
+
+
+def full_maps(size=12, seed=0) -> MapSet:
+    base = random_maps(size, seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    return MapSet(
+        **base.present(),
+        alpha=torch.rand(1, size, size, generator=g),
+        metallic=torch.rand(1, size, size, generator=g),
+        basecolor=torch.rand(3, size, size, generator=g),
+        emissive=torch.rand(3, size, size, generator=g),
+        height=torch.randn(1, size, size, generator=g) * 0.3,
+    )
+
+
+def test_png_round_trip_within_quantisation(tmp_path):
+    maps = full_maps()
+    write_mapset(tmp_path / "m", maps)
+    back = read_mapset(tmp_path / "m")
+    for name in ("diffuse", "specular", "basecolor", "emissive"):  # 8-bit sRGB
+        err = (linear_to_srgb(getattr(back, name)) - linear_to_srgb(getattr(maps, name))).abs().max()
+        assert err <= 0.5 / 255 + 1e-6, name
+    for name in ("alpha", "metallic"):  # 8-bit linear
+        assert (getattr(back, name) - getattr(maps, name)).abs().max() <= 0.5 / 255 + 1e-6
+    assert (back.roughness - maps.roughness).abs().max() <= 0.5 / 65535 + 1e-7  # 16-bit
+    # 16-bit normals: each component within 1/65535 after renormalising, so under 0.005°
+    cross = torch.linalg.cross(back.normal.double(), maps.normal.double(), dim=0).norm(dim=0)
+    assert torch.rad2deg(torch.asin(cross)).max() < 0.005
+    span = float(maps.height.max() - maps.height.min())
+    assert (back.height - maps.height).abs().max() <= span * 0.5 / 65535 + 1e-6
+    meta = json.loads((tmp_path / "m" / "mapset.json").read_text())
+    assert meta["files"]["normal"]["bits"] == 16 and meta["files"]["diffuse"]["bits"] == 8
+    assert "conventions" in meta
+
+
+def test_exr_round_trip_is_exact(tmp_path):
+    maps = full_maps()
+    write_mapset(tmp_path / "m", maps, file_format="exr")
+    back = read_mapset(tmp_path / "m")
+    for name, t in maps.present().items():
+        atol = 1e-6 if name == "normal" else 0
+        torch.testing.assert_close(getattr(back, name), t, rtol=0, atol=atol)
+
+
+def test_grey_as_rgb_and_colour_as_grey(tmp_path):
+    maps = random_maps(8)
+    write_mapset(tmp_path / "m", maps)
+    rough = maps.roughness[0].numpy()
+    write_image(tmp_path / "m" / "roughness.png", np.stack([rough] * 3, axis=-1), bits=16)
+    back = read_mapset(tmp_path / "m")
+    assert back.roughness.shape == (1, 8, 8)
+    assert (back.roughness - maps.roughness).abs().max() < 1e-4
+
+
+def test_normal_png_encoding_is_half_plus_half(tmp_path):
+    # a normal tilted toward +x by 30° is stored as ((sin 30° + 1)/2, 0.5, (cos 30° + 1)/2)
+    n = torch.tensor([0.5, 0.0, 3**0.5 / 2]).view(3, 1, 1).expand(3, 2, 2)
+    maps = MapSet(torch.zeros(3, 2, 2), torch.zeros(3, 2, 2), torch.zeros(1, 2, 2), n.clone())
+    write_mapset(tmp_path / "m", maps)
+    from matscan.imagefile import read_image
+
+    px = read_image(tmp_path / "m" / "normal.png").pixels[0, 0]
+    assert px.tolist() == pytest.approx([0.75, 0.5, (3**0.5 / 2 + 1) / 2], abs=1 / 65535)
+
+
+def test_errors_name_the_file(tmp_path):
+    maps = random_maps(8)
+    write_mapset(tmp_path / "m", maps)
+    (tmp_path / "m" / "normal.png").unlink()
+    with pytest.raises(MatscanError, match=r"no normal map .*found diffuse\.png"):
+        read_mapset(tmp_path / "m")
+    write_mapset(tmp_path / "m", maps, overwrite=True)
+    write_image(tmp_path / "m" / "roughness.png", np.zeros((4, 4, 1)), bits=16)
+    with pytest.raises(MatscanError, match=r"roughness\.png: is 4×4 pixels but the diffuse map is 8×8"):
+        read_mapset(tmp_path / "m")
+    write_image(tmp_path / "m" / "roughness.png", np.random.default_rng(0).random((8, 8, 3)), bits=8)
+    with pytest.raises(MatscanError, match=r"roughness\.png: a roughness map must be grey"):
+        read_mapset(tmp_path / "m")
+    write_image(tmp_path / "m" / "roughness.exr", np.zeros((8, 8, 1)), bits=32)
+    with pytest.raises(MatscanError, match=r"more than one roughness map"):
+        read_mapset(tmp_path / "m")
+    with pytest.raises(MatscanError, match="no such map set folder"):
+        read_mapset(tmp_path / "nowhere")
+
+
+def test_output_folder_is_not_clobbered(tmp_path):
+    maps = random_maps(4)
+    write_mapset(tmp_path / "m", maps)
+    with pytest.raises(MatscanError, match="not empty"):
+        write_mapset(tmp_path / "m", maps)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
