@@ -73,3 +73,15 @@ def test_read_errors(tmp_path):
         read_image(tmp_path / "gone.png")
     with pytest.raises(MatscanError, match=r"unsupported image type '\.gif'"):
         read_image(tmp_path / "x.gif")
+
+
+def test_raw_files_need_the_extra_or_a_real_raw(tmp_path):
+    (tmp_path / "x.dng").write_bytes(b"not a raw file")
+    try:
+        import rawpy  # noqa: F401
+
+        words = r"x\.dng: cannot read as DNG"
+    except ImportError:
+        words = r"x\.dng: reading RAW files needs the 'raw' extra"
+    with pytest.raises(MatscanError, match=words):
+        read_image(tmp_path / "x.dng")
