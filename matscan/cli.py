@@ -132,6 +132,25 @@ def cmd_sheet(args: argparse.Namespace) -> str:
     return f"sheet: wrote {args.out} ({len(tiles)} tiles)"
 
 
+def cmd_synth(args: argparse.Namespace) -> str:
+    from matscan.data import synthesize
+
+    t0 = time.perf_counter()
+    out = synthesize(
+        args.out,
+        args.count,
+        size=args.size,
+        seed=args.seed,
+        family=args.family,
+        rig=args.rig,
+        lights=args.lights,
+        overwrite=args.overwrite,
+        progress=True,
+    )
+    seconds = time.perf_counter() - t0
+    return f"synth: wrote {args.count} materials with captures and {out}/contact_sheet.png in {seconds:.1f} s"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="matscan", description="Photographs of a flat material under known lights → material maps."
@@ -176,6 +195,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--intensity", type=float, default=1.0, help="light intensity (default 1)")
     p.add_argument("--exponent", type=float, default=0.0, help="emission exponent m (default 0, isotropic)")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("synth", help="write procedural materials, their captures and a contact sheet")
+    p.add_argument("--out", required=True, help="folder to write")
+    p.add_argument("--count", type=int, required=True, help="how many materials")
+    p.add_argument("--size", type=int, default=256, help="map size in pixels (default 256)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--family", default=None, help="one family only (default: drawn by the prior's weights)")
+    p.add_argument("--rig", default="dome24")
+    p.add_argument("--lights", default=None, help="subset of lights to photograph (default all)")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")
     p.add_argument("folder", metavar="FOLDER", help="capture or map set folder (or @sample)")

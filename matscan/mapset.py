@@ -114,6 +114,29 @@ class MapSet:
                 )
         return self
 
+    def transformed(self, rotations: int = 0, flip_x: bool = False) -> MapSet:
+        """The material turned ``rotations`` × 90° counter-clockwise (seen from the
+        camera), after mirroring x → −x when ``flip_x``.
+
+        Pixels move and normal vectors turn with them: mirroring negates n_x;
+        a 90° turn maps (n_x, n_y) → (−n_y, n_x). So rendering the result under
+        lights moved by the same transform gives the moved images
+        (:func:`matscan.rig.transform_points` moves lights).
+        """
+        out = {}
+        for name, t in self.present().items():
+            if flip_x:
+                t = t.flip(-1)
+                if name == "normal":
+                    t = torch.stack([-t[0], t[1], t[2]])
+            if rotations % 4:
+                t = torch.rot90(t, rotations % 4, dims=(-2, -1))  # rows are −y: this is CCW in x, y
+                if name == "normal":
+                    for _ in range(rotations % 4):
+                        t = torch.stack([-t[1], t[0], t[2]])
+            out[name] = t.contiguous()
+        return MapSet(**out)
+
     def crop(self, top: int, left: int, height: int, width: int) -> MapSet:
         """A crop of every map."""
         return replace(self, **{k: v[:, top : top + height, left : left + width] for k, v in self.present().items()})
@@ -121,7 +144,8 @@ class MapSet:
 
 def normalize_normals(normal: Tensor) -> Tensor:
     """Unit-length normals; a zero vector becomes (0, 0, 1)."""
-    length = normal.norm(dim=-3, keepdim=True)
+    x, y, z = normal.unbind(-3)
+    length = torch.sqrt(x * x + y * y + z * z).unsqueeze(-3)
     up = torch.zeros_like(normal)
     up[..., 2, :, :] = 1
     return torch.where(length > 1e-8, normal / length.clamp_min(1e-8), up)

@@ -228,6 +228,18 @@ class LightSet:
         )
 
 
+def transform_points(points: Tensor, rotations: int = 0, flip_x: bool = False) -> Tensor:
+    """Positions (…, 3) mirrored x → −x when ``flip_x``, then turned ``rotations`` × 90°
+    counter-clockwise about +z: the transform :meth:`matscan.mapset.MapSet.transformed`
+    applies to a material."""
+    x, y, z = points.unbind(-1)
+    if flip_x:
+        x = -x
+    for _ in range(rotations % 4):
+        x, y = -y, x
+    return torch.stack([x, y, z], dim=-1)
+
+
 # --- the built-in rigs ---------------------------------------------------------
 
 #: The paper's Table 4 input subsets for dome24, named by count.

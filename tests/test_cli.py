@@ -86,3 +86,13 @@ def test_console_script_reports_without_traceback(tmp_path):
     assert proc.returncode == 2
     assert "light 0 appears twice" in proc.stderr and "Traceback" not in proc.stderr
     assert sorted(p.name for p in bad.iterdir()) == ["capture.json"]
+
+
+def test_synth(tmp_path, capsys):
+    assert main(["synth", "--out", str(tmp_path / "s"), "--count", "2", "--size", "32", "--lights", "6"]) == 0
+    assert "wrote 2 materials" in capsys.readouterr().out
+    folders = sorted(p.name for p in (tmp_path / "s").iterdir())
+    assert folders[-1] == "contact_sheet.png" and len(folders) == 3
+    cap = load_capture(tmp_path / "s" / folders[0] / "capture")
+    assert cap.light_indices == (0, 4, 8, 12, 16, 20)
+    assert main(["synth", "--out", str(tmp_path / "t"), "--count", "1", "--size", "32", "--family", "velvet"]) == 2

@@ -88,3 +88,17 @@ def test_shipped_sample_matches_its_maps():
     ok = ~cap.saturated.expand_as(clean)
     rmse = float(((cap.images - clean)[ok] ** 2).mean().sqrt())
     assert rmse < 0.005
+
+
+def test_srgb_quantisation_equals_rounding_in_float64():
+    # stored values are round(srgb(x)·top) decoded, up to float32 rounding next to a code boundary
+    from matscan.color import linear_to_srgb
+
+    x = torch.rand(200_000, generator=torch.Generator().manual_seed(9))
+    for bits in (8, 16):
+        top = (1 << bits) - 1
+        direct = torch.round(linear_to_srgb(x.double()) * top)
+        stored = torch.round(linear_to_srgb(apply_camera(x, CameraModel(encoding="srgb", bits=bits)).double()) * top)
+        off = (stored - direct).abs()
+        assert off.max() <= 1
+        assert (off > 0).float().mean() < (1e-4 if bits == 8 else 5e-3)
