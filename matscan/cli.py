@@ -151,6 +151,44 @@ def cmd_synth(args: argparse.Namespace) -> str:
     return f"synth: wrote {args.count} materials with captures and {out}/contact_sheet.png in {seconds:.1f} s"
 
 
+def cmd_train(args: argparse.Namespace) -> str:
+    import json
+
+    from matscan.train import TrainConfig, train
+
+    values = {}
+    if args.config:
+        path = Path(args.config)
+        try:
+            values = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise MatscanError(f"{path}: cannot read a JSON config ({exc})") from None
+    for key in (
+        "preset",
+        "variant",
+        "rig",
+        "crop",
+        "batch",
+        "lr",
+        "steps",
+        "render_lights",
+        "workers",
+        "seed",
+        "val_every",
+        "val_count",
+        "checkpoint_minutes",
+    ):
+        value = getattr(args, key)
+        if value is not None:
+            values[key] = value
+    if args.maps:
+        values["maps"] = tuple(m.strip() for m in args.maps.split(","))
+    cfg = TrainConfig.from_dict(values, args.config or "train")
+    res = train(cfg, args.out, max_steps=args.max_steps, max_minutes=args.minutes)
+    val = ", ".join(f"{k} {v:.4f}" for k, v in res["validation"].items()) or "no validation yet"
+    return f"train: {args.out} at step {res['step']} ({res['seconds'] / 3600:.2f} h in all); {val}"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="matscan", description="Photographs of a flat material under known lights → material maps."
@@ -206,6 +244,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lights", default=None, help="subset of lights to photograph (default all)")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_synth)
+
+    p = sub.add_parser("train", help="train the map networks (resumes a run folder that has a checkpoint)")
+    p.add_argument("--out", required=True, metavar="RUN", help="run folder (config, checkpoint, logs)")
+    p.add_argument("--config", default=None, help="JSON file of TrainConfig fields (flags override it)")
+    p.add_argument("--preset", default=None, help="network shape: paper, cpu, tiny (default cpu)")
+    p.add_argument("--variant", default=None, help="four, one_encoder, global_track, no_global_skip")
+    p.add_argument("--maps", default=None, help="train only these networks, e.g. diffuse,normal")
+    p.add_argument("--rig", default=None)
+    p.add_argument("--crop", type=int, default=None)
+    p.add_argument("--batch", type=int, default=None)
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--steps", type=int, default=None, help="total steps of the run")
+    p.add_argument("--render-lights", dest="render_lights", type=int, default=None)
+    p.add_argument("--workers", type=int, default=None, help="data worker processes")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--val-every", dest="val_every", type=int, default=None)
+    p.add_argument("--val-count", dest="val_count", type=int, default=None)
+    p.add_argument("--checkpoint-minutes", dest="checkpoint_minutes", type=float, default=None)
+    p.add_argument("--max-steps", dest="max_steps", type=int, default=None, help="stop after this many more steps")
+    p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
+    p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")
     p.add_argument("folder", metavar="FOLDER", help="capture or map set folder (or @sample)")

@@ -11,6 +11,7 @@ roughness  (1, H, W)
 normal     (3, H, W)
 offset     (2,) int64            crop position (rows, cols) in the virtual full map
 full_size  (2,) int64            size of that virtual full map covering the rig field
+index      () int64              the sample's index
 =========  ====================  ==============================================
 
 How a sample is made (all randomness from (seed, i), so any worker gives the
@@ -236,6 +237,7 @@ class SvbrdfDataset(Dataset):
             "roughness": maps.roughness,
             "normal": maps.normal,
             "offset": torch.tensor(offset),
+            "index": torch.tensor(int(index)),
             "full_size": torch.tensor(full),
         }
 
@@ -249,7 +251,7 @@ def fixed_validation_set(
     uses s = 1,000,000, i.e. seeds from 1.000003e12 up, which training with seed 0
     (or any small seed) never reaches.
     """
-    ds = SvbrdfDataset(DataConfig(rig=rig, crop=crop, seed=seed, subsets=subsets))
+    ds = SvbrdfDataset(DataConfig(rig=rig, crop=crop, seed=seed, subsets=subsets, compile=False))
     return [ds[i] for i in range(count)]
 
 

@@ -1,0 +1,415 @@
+"""Training: the map networks on the material prior, with checkpoints, resume and DDP.
+
+One run lives in a folder::
+
+    RUN/config.json              the TrainConfig (written once; a resume must match it)
+    RUN/checkpoint.safetensors   weights + Adam state + step (overwritten atomically)
+    RUN/log.csv                  one row per logged step: losses per map and their terms
+    RUN/val.csv                  validation RMSE per map every ``val_every`` steps
+
+A run is deterministic given its config: sample i of the data, and the novel
+lights of its rendering loss, are fixed by (seed, i); step s uses samples
+s·B·W … (s+1)·B·W − 1 (B batch, W processes). So stopping and resuming from the checkpoint continues the same run.
+
+Data-parallel: started under ``torchrun --nproc_per_node N -m matscan.cli train …``
+each process trains on its share of every step's samples and gradients are
+averaged (DDP; gloo on CPU, NCCL on GPU). Only rank 0 writes files.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import signal
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+from torch import Tensor
+from torch.utils.data import DataLoader, Sampler
+
+from matscan.data import DataConfig, SvbrdfDataset, fixed_validation_set
+from matscan.errors import MatscanError, input_error
+from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights
+from matscan.nets import MAPS, MapNets, encode_inputs, preset
+from matscan.render import surface_points
+from matscan.rig import LightSet, resolve_rig
+
+CHECKPOINT = "checkpoint.safetensors"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that defines a training run."""
+
+    preset: str = "cpu"
+    variant: str = "four"
+    maps: tuple[str, ...] = MAPS
+    rig: str = "dome24"
+    crop: int = 128
+    batch: int = 4
+    lr: float = 1e-4
+    steps: int = 200_000
+    render_lights: int = 8
+    lambda_map: float = LAMBDA_MAP
+    lambda_render: float = LAMBDA_RENDER
+    grad_clip: float = 1.0
+    val_every: int = 1000
+    val_count: int = 32
+    log_every: int = 20
+    checkpoint_minutes: float = 10.0
+    workers: int = 1
+    seed: int = 0
+
+    @staticmethod
+    def from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
+        names = {f.name for f in fields(TrainConfig)}
+        for key in data:
+            if key not in names:
+                raise MatscanError(f"{where}: unknown key {key!r} (expected one of {', '.join(sorted(names))})")
+        data = dict(data)
+        if "maps" in data:
+            data["maps"] = tuple(data["maps"])
+        return TrainConfig(**data)
+
+
+class StepSampler(Sampler[list[int]]):
+    """Batches of sample indices for steps ``start``, ``start`` + 1, … (this rank's share)."""
+
+    def __init__(self, start: int, batch: int, rank: int = 0, world: int = 1) -> None:
+        self.start, self.batch, self.rank, self.world = start, batch, rank, world
+
+    def __iter__(self) -> Iterator[list[int]]:
+        step = self.start
+        while True:
+            base = (step * self.world + self.rank) * self.batch
+            yield list(range(base, base + self.batch))
+            step += 1
+
+    def __len__(self) -> int:  # nominal
+        return 2**31
+
+
+def build_nets(cfg: TrainConfig) -> MapNets:
+    rig = resolve_rig(cfg.rig)
+    return MapNets(len(rig.lights), preset(cfg.preset), cfg.variant, cfg.maps)
+
+
+def sample_lights(indices: Tensor, cfg: TrainConfig, rig) -> LightSet:
+    """Novel lights for the rendering loss, drawn per sample index (so a sample gets
+    the same lights in any process layout)."""
+    sets = [
+        novel_lights(
+            1,
+            cfg.render_lights,
+            rig.reference_distance_mm,
+            rig.camera.position_mm,
+            torch.Generator().manual_seed((cfg.seed * 1_000_003 + int(i)) * 7 + 3),
+        )
+        for i in indices
+    ]
+    return LightSet(
+        *(torch.cat([getattr(ls, f) for ls in sets]) for f in ("position", "intensity", "axis", "exponent", "camera")),
+        rig.reference_distance_mm,
+    )
+
+
+def _groups(nets: MapNets) -> dict[str, list[Tensor]]:
+    """Parameters per map network (for per-network gradient clipping)."""
+    if nets.variant == "one_encoder":
+        return {"all": list(nets.parameters())}
+    return {name: list(net.parameters()) for name, net in nets.nets.items()}
+
+
+# --- checkpoints ---------------------------------------------------------------------
+
+
+def save_checkpoint(
+    path: Path, nets: MapNets, opt: torch.optim.Optimizer, step: int, cfg: TrainConfig, elapsed: float
+) -> None:
+    """Weights, Adam state and step in one safetensors file, written atomically."""
+    tensors = {f"model.{k}": v.detach().contiguous() for k, v in nets.state_dict().items()}
+    state = opt.state_dict()
+    adam_steps = {}
+    for pid, st in state["state"].items():
+        tensors[f"opt.{pid}.exp_avg"] = st["exp_avg"].contiguous()
+        tensors[f"opt.{pid}.exp_avg_sq"] = st["exp_avg_sq"].contiguous()
+        adam_steps[str(pid)] = float(st["step"])
+    meta = {
+        "step": str(step),
+        "config": json.dumps(asdict(cfg)),
+        "adam_steps": json.dumps(adam_steps),
+        "elapsed_seconds": f"{elapsed:.1f}",
+        "format": "matscan-checkpoint/1",
+    }
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    save_file(tensors, str(tmp), metadata=meta)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: Path, nets: MapNets, opt: torch.optim.Optimizer | None) -> tuple[int, float, dict]:
+    """Restore weights (and Adam state); returns (step, elapsed seconds, config dict)."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata()
+    tensors = load_file(str(path))
+    model = {k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")}
+    try:
+        nets.load_state_dict(model)
+    except RuntimeError as exc:
+        raise input_error(path, f"weights do not fit this network ({str(exc).splitlines()[0]})") from None
+    if opt is not None:
+        adam_steps = json.loads(meta["adam_steps"])
+        state = opt.state_dict()
+        for pid_str, st in adam_steps.items():
+            pid = int(pid_str)
+            state["state"][pid] = {
+                "step": torch.tensor(st),
+                "exp_avg": tensors[f"opt.{pid}.exp_avg"],
+                "exp_avg_sq": tensors[f"opt.{pid}.exp_avg_sq"],
+            }
+        opt.load_state_dict(state)
+    return int(meta["step"]), float(meta.get("elapsed_seconds", 0)), json.loads(meta["config"])
+
+
+def export_weights(checkpoint: Path, out: Path, extra: dict[str, str] | None = None) -> Path:
+    """Weights only (no optimizer state) with what is needed to rebuild the networks."""
+    from safetensors import safe_open
+
+    with safe_open(str(checkpoint), framework="pt") as f:
+        meta = f.metadata()
+    tensors = {k[len("model.") :]: v for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")}
+    cfg = json.loads(meta["config"])
+    info = {
+        "format": "matscan-weights/1",
+        "train_config": json.dumps(cfg),
+        "step": meta["step"],
+        "elapsed_seconds": meta.get("elapsed_seconds", "0"),
+    }
+    info.update(extra or {})
+    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
+    save_file(tensors, str(tmp), metadata=info)
+    tmp.replace(out)
+    return out
+
+
+def load_weights(path: str | Path) -> tuple[MapNets, dict[str, str]]:
+    """Networks from an exported weights file (or a checkpoint), in eval mode."""
+    from safetensors import safe_open
+
+    path = Path(path)
+    if not path.is_file():
+        raise input_error(path, "no such weights file")
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata() or {}
+    if "train_config" in meta:
+        cfg = TrainConfig.from_dict(json.loads(meta["train_config"]), str(path))
+    elif "config" in meta:
+        cfg = TrainConfig.from_dict(json.loads(meta["config"]), str(path))
+    else:
+        raise input_error(path, "not a matscan weights file (no training config in its metadata)")
+    nets = build_nets(cfg)
+    tensors = load_file(str(path))
+    state = {
+        k[len("model.") :] if k.startswith("model.") else k: v for k, v in tensors.items() if not k.startswith("opt.")
+    }
+    nets.load_state_dict(state)
+    nets.eval()
+    return nets, meta
+
+
+# --- evaluation ----------------------------------------------------------------------
+
+
+def batch_to(samples: list[dict[str, Tensor]]) -> dict[str, Tensor]:
+    return {k: torch.stack([s[k] for s in samples]) for k in samples[0]}
+
+
+@torch.no_grad()
+def validate(nets: MapNets, samples: list[dict[str, Tensor]], batch: int = 8) -> dict[str, float]:
+    """RMSE per map (normals: RMSE of the vectors, and mean angular error in degrees)."""
+    was = nets.training
+    nets.eval()
+    sq = {m: 0.0 for m in nets.maps}
+    count = {m: 0 for m in nets.maps}
+    angle, pixels = 0.0, 0
+    for i in range(0, len(samples), batch):
+        b = batch_to(samples[i : i + batch])
+        out = nets(encode_inputs(b["inputs"], b["present"], b["offset"], b["full_size"]))
+        for m in nets.maps:
+            sq[m] += float(((out[m] - b[m]) ** 2).sum())
+            count[m] += b[m].numel()
+        if "normal" in out:
+            cos = (out["normal"] * b["normal"]).sum(1).clamp(-1, 1)
+            angle += float(torch.rad2deg(torch.acos(cos)).sum())
+            pixels += cos.numel()
+    nets.train(was)
+    res = {f"rmse_{m}": math.sqrt(sq[m] / count[m]) for m in nets.maps}
+    if pixels:
+        res["normal_degrees"] = angle / pixels
+    return res
+
+
+# --- the loop ------------------------------------------------------------------------
+
+
+def _dist_info() -> tuple[int, int]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    return rank, world
+
+
+def train(
+    cfg: TrainConfig,
+    run: str | Path,
+    max_steps: int | None = None,
+    max_minutes: float | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Train (or resume) the run in folder ``run`` until ``cfg.steps``, ``max_steps``
+    more steps, or ``max_minutes`` of wall time, whichever comes first.
+
+    Returns a summary: steps done, seconds, last losses, last validation.
+    """
+    from tqdm import tqdm
+
+    run = Path(run)
+    rank, world = _dist_info()
+    if world > 1 and not torch.distributed.is_initialized():
+        torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    torch.manual_seed(cfg.seed)
+    nets = build_nets(cfg)
+    opt = torch.optim.Adam(nets.parameters(), lr=cfg.lr)
+
+    config_path = run / "config.json"
+    ckpt = run / CHECKPOINT
+    step, elapsed = 0, 0.0
+    if rank == 0:
+        run.mkdir(parents=True, exist_ok=True)
+        if config_path.is_file():
+            saved = TrainConfig.from_dict(json.loads(config_path.read_text()), str(config_path))
+            if saved != cfg:
+                diff = [f.name for f in fields(cfg) if getattr(saved, f.name) != getattr(cfg, f.name)]
+                raise input_error(
+                    run,
+                    f"holds a run with another config (differs in {', '.join(diff)}); "
+                    "use another folder, or the same settings to resume",
+                )
+        else:
+            config_path.write_text(json.dumps(asdict(cfg), indent=2) + "\n")
+    if world > 1:
+        torch.distributed.barrier()
+    if ckpt.is_file():
+        step, elapsed, _ = load_checkpoint(ckpt, nets, opt)
+
+    model: torch.nn.Module = nets
+    if world > 1:
+        model = torch.nn.parallel.DistributedDataParallel(nets)
+
+    rig = resolve_rig(cfg.rig)
+    data = SvbrdfDataset(DataConfig(rig=cfg.rig, crop=cfg.crop, seed=cfg.seed))
+    # spawned (not forked) workers: a fork after this process has run OpenMP or compiled
+    # kernels can deadlock; each worker builds its own kernels
+    loader = DataLoader(
+        data,
+        batch_sampler=StepSampler(step, cfg.batch, rank, world),
+        num_workers=cfg.workers,
+        persistent_workers=cfg.workers > 0,
+        prefetch_factor=4 if cfg.workers > 0 else None,
+        multiprocessing_context="spawn" if cfg.workers > 0 else None,
+    )
+    val_samples = fixed_validation_set(cfg.val_count, cfg.crop, cfg.rig) if rank == 0 and cfg.val_every else []
+
+    end = cfg.steps if max_steps is None else min(cfg.steps, step + max_steps)
+    deadline = time.monotonic() + max_minutes * 60 if max_minutes is not None else math.inf
+    stop = {"now": False}
+
+    def on_signal(signum, frame):  # finish the step, write the checkpoint, leave
+        stop["now"] = True
+
+    old_handlers = {}
+    if rank == 0:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                old_handlers[sig] = signal.signal(sig, on_signal)
+            except ValueError:  # not the main thread
+                pass
+    log_path, val_path = run / "log.csv", run / "val.csv"
+    last_ckpt = time.monotonic()
+    t_start = time.monotonic()
+    last_terms: dict[str, float] = {}
+    last_val: dict[str, float] = {}
+    bar = tqdm(total=end - step, desc="train", unit="step", disable=not progress or rank != 0)
+    batches = iter(loader)
+    try:
+        while step < end and not stop["now"] and time.monotonic() < deadline:
+            b = next(batches)
+            x = encode_inputs(b["inputs"], b["present"], b["offset"], b["full_size"])
+            out = model(x)
+            truth = {m: b[m] for m in MAPS}
+            lights = points = None
+            if cfg.lambda_render > 0 and cfg.render_lights > 0:
+                lights = sample_lights(b["index"], cfg, rig)
+                points = torch.stack(
+                    [
+                        surface_points(rig.field_mm, (cfg.crop, cfg.crop), tuple(o.tolist()), tuple(f.tolist()))
+                        for o, f in zip(b["offset"], b["full_size"], strict=True)
+                    ]
+                )
+            total = 0.0
+            terms: dict[str, float] = {}
+            for m in cfg.maps:
+                loss, parts = map_loss(m, out, truth, lights, points, cfg.lambda_map, cfg.lambda_render)
+                total = total + loss
+                terms[f"{m}"] = float(loss.detach())
+                terms.update({f"{m}_{k}": v for k, v in parts.items()})
+            opt.zero_grad(set_to_none=True)
+            total.backward()
+            for params in _groups(nets).values():
+                torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+            opt.step()
+            step += 1
+            bar.update(1)
+            last_terms = terms
+            if rank == 0:
+                if step % cfg.log_every == 0 or step == end:
+                    _append_csv(
+                        log_path,
+                        {
+                            "step": step,
+                            "seconds": round(elapsed + time.monotonic() - t_start, 1),
+                            **{k: round(v, 6) for k, v in terms.items()},
+                        },
+                    )
+                    bar.set_postfix({m: f"{terms[m]:.3f}" for m in cfg.maps})
+                if cfg.val_every and step % cfg.val_every == 0:
+                    last_val = validate(nets, val_samples)
+                    _append_csv(val_path, {"step": step, **{k: round(v, 6) for k, v in last_val.items()}})
+                if time.monotonic() - last_ckpt > cfg.checkpoint_minutes * 60:
+                    save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start)
+                    last_ckpt = time.monotonic()
+    finally:
+        bar.close()
+        if rank == 0:
+            save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start)
+            for sig, handler in old_handlers.items():
+                signal.signal(sig, handler)
+        if world > 1:
+            torch.distributed.barrier()
+    return {"step": step, "seconds": elapsed + time.monotonic() - t_start, "losses": last_terms, "validation": last_val}
+
+
+def _append_csv(path: Path, row: dict[str, Any]) -> None:
+    new = not path.is_file()
+    with path.open("a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            w.writeheader()
+        w.writerow(row)

@@ -1,0 +1,115 @@
+"""One shared model tester over every network variant, plus the paper preset's size."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from matscan.errors import MatscanError
+from matscan.nets import MAPS, PRESETS, VARIANTS, MapNets, NetConfig, encode_inputs, input_channels, preset
+
+TINY = PRESETS["tiny"]
+
+
+def _inputs(b=2, h=16, w=16, n=24, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    photos = torch.rand(b, n, 3, h, w, generator=g)
+    present = (torch.rand(b, n, generator=g) < 0.5).float()
+    present[:, 0] = 1
+    return encode_inputs(photos * present[..., None, None, None], present)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+class TestEveryNetwork:
+    def test_forward_backward_and_ranges(self, variant):
+        torch.manual_seed(0)
+        nets = MapNets(24, TINY, variant)
+        out = nets(_inputs())
+        assert set(out) == set(MAPS)
+        for name, c in (("diffuse", 3), ("specular", 3), ("roughness", 1), ("normal", 3)):
+            assert out[name].shape == (2, c, 16, 16)
+        sum(v.square().mean() for v in out.values()).backward()
+        grads = [p.grad for p in nets.parameters()]
+        assert all(g is not None and torch.isfinite(g).all() for g in grads)
+        assert sum(float(g.abs().sum()) for g in grads) > 0
+        nets.eval()
+        with torch.no_grad():
+            out = nets(_inputs(seed=1))
+        assert 0 <= out["roughness"].min() and out["roughness"].max() <= 1
+        for name in ("diffuse", "specular"):
+            assert 0 <= out[name].min() and out[name].max() <= 1
+        torch.testing.assert_close(out["normal"].norm(dim=1), torch.ones(2, 16, 16), atol=1e-5, rtol=0)
+
+    def test_odd_sizes_are_padded_and_cropped(self, variant):
+        nets = MapNets(24, TINY, variant).eval()
+        with torch.no_grad():
+            out = nets(_inputs(1, 13, 21))
+        assert all(t.shape[-2:] == (13, 21) for t in out.values())
+
+    def test_save_load_round_trip(self, variant, tmp_path):
+        from safetensors.torch import load_file, save_file
+
+        a = MapNets(24, TINY, variant).eval()
+        save_file(a.state_dict(), str(tmp_path / "w.safetensors"))
+        b = MapNets(24, TINY, variant).eval()
+        b.load_state_dict(load_file(str(tmp_path / "w.safetensors")))
+        x = _inputs(seed=2)
+        with torch.no_grad():
+            oa, ob = a(x), b(x)
+        for k in oa:
+            torch.testing.assert_close(oa[k], ob[k], rtol=0, atol=0)
+
+
+def test_normal_network_has_no_global_skip_and_others_do():
+    nets = MapNets(24, TINY, "four")
+    assert not hasattr(nets.nets["normal"].decoder, "globals")
+    assert len(nets.nets["diffuse"].decoder.globals) == TINY.depth + 1
+
+
+def paper_parameter_count(cin: int, out: int, global_skip: bool) -> int:
+    """The paper's U-Net counted from its description: 3×3 convs with bias, 2×2 stride-2
+    transposed convs, FC–SELU–FC global skips of the level's width at every level."""
+    c = [64 + 32 * i for i in range(8)]
+    n = (cin * 9 + 1) * c[0]
+    for i in range(1, 8):
+        n += (c[i - 1] * 9 + 1) * c[i] + 2 * (c[i] * 9 + 1) * c[i]
+    n += (c[7] * 9 + 1) * c[7]
+    for i in range(7, 0, -1):
+        n += c[i] * c[i - 1] * 4 + c[i - 1]
+        n += (2 * c[i - 1] * 9 + 1) * c[i - 1] + (c[i - 1] * 9 + 1) * c[i - 1]
+    if global_skip:
+        n += sum(2 * (cj * cj + cj) for cj in c)
+    return n + (c[0] * 9 + 1) * out
+
+
+def test_paper_preset_size_and_512_forward():
+    nets = MapNets(24, preset("paper"), "four")
+    cin = input_channels(24)
+    for name, out, gs in (("diffuse", 3, True), ("specular", 3, True), ("roughness", 1, True), ("normal", 3, False)):
+        assert sum(p.numel() for p in nets.nets[name].parameters()) == paper_parameter_count(cin, out, gs)
+    net = nets.nets["diffuse"].eval()
+    with torch.no_grad():
+        y = net(torch.zeros(1, cin, 512, 512))
+    assert y.shape == (1, 3, 512, 512)
+
+
+def test_encode_inputs_channels():
+    photos = torch.zeros(1, 24, 3, 4, 4)
+    photos[0, 5] = 1.0
+    present = torch.zeros(1, 24)
+    present[0, 5] = 1
+    x = encode_inputs(photos, present, torch.tensor([[0, 4]]), torch.tensor([[8, 8]]))
+    assert x.shape == (1, 98, 4, 4)
+    assert torch.allclose(x[0, 15:18], torch.ones(3, 4, 4))  # log1p(100)/log1p(100) = 1 for radiance 1
+    assert x[0, :15].abs().sum() == 0 and x[0, 72 + 5].min() == 1 and x[0, 72:96].sum() == 16
+    # field coordinates of a crop at columns 4..7 of 8: x from 1/8 to 7/8, top row y = 1 − 1/8
+    torch.testing.assert_close(x[0, 96, 0], torch.tensor([0.125, 0.375, 0.625, 0.875]))
+    assert float(x[0, 97, 0, 0]) == pytest.approx(0.875)
+
+
+def test_bad_names():
+    with pytest.raises(MatscanError, match="preset"):
+        preset("huge")
+    with pytest.raises(MatscanError, match="variant"):
+        MapNets(24, TINY, "two_encoders")
+    assert NetConfig().channels()[-1] == 64 + 32 * 7
