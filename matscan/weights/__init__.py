@@ -1,0 +1,35 @@
+"""Trained weights shipped with matscan, loaded by name.
+
+``default``: the four map networks for the dome24 rig, ``cpu`` preset, trained on
+the procedural prior on a 2-core CPU (docs/model-card.md says how and how well).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from matscan.errors import MatscanError
+
+ROOT = Path(__file__).parent
+SHIPPED = {"default": "dome24-cpu.safetensors"}
+
+
+def model_path(name_or_path: str | Path) -> Path:
+    """The file of a shipped model name, or the given path to a weights file."""
+    text = str(name_or_path)
+    if text in SHIPPED:
+        path = ROOT / SHIPPED[text]
+        if not path.is_file():
+            raise MatscanError(f"model {text!r}: its weights ({path.name}) are not in this installation")
+        return path
+    path = Path(text)
+    if path.suffix != ".safetensors" and not path.is_file():
+        raise MatscanError(f"model: {text!r} is neither a shipped model ({', '.join(SHIPPED)}) nor a weights file")
+    return path
+
+
+def load_model(name_or_path: str | Path = "default"):
+    """(MapNets in eval mode, metadata) for a shipped name or a weights file."""
+    from matscan.train import load_weights
+
+    return load_weights(model_path(name_or_path))
