@@ -72,6 +72,21 @@ def cmd_simulate(args: argparse.Namespace) -> str:
     )
 
 
+def cmd_reconstruct(args: argparse.Namespace) -> str:
+    from matscan.reconstruct import ReconstructConfig, reconstruct
+
+    cfg = ReconstructConfig(model=args.model, refine=args.refine, refine_steps=args.steps, tile=args.tile)
+    rec = reconstruct(_capture_arg(args.capture), args.out, cfg, overwrite=args.overwrite, progress=True)
+    for warning in rec["warnings"]:
+        print(f"matscan: warning: {warning}", file=sys.stderr)
+    w, h = rec["size_px"]
+    return (
+        f"reconstruct: wrote maps of {w}×{h} px ({rec['mm_per_pixel'][0]:.3f} mm/px) from {len(rec['inputs'])} photos "
+        f"to {args.out}; model {rec['model']['name']}, refined {'yes' if rec['refined'] else 'no'}; "
+        f"re-render RMSE {rec['rerender_rmse']:.4f}; {rec['timings_s']['total_s']:.1f} s"
+    )
+
+
 def cmd_render(args: argparse.Namespace) -> str:
     import numpy as np
 
@@ -224,6 +239,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("reconstruct", help="capture → maps (networks, then refinement by inverse rendering)")
+    p.add_argument("capture", metavar="CAPTURE", help="capture folder, or @sample for the built-in sample capture")
+    p.add_argument("--out", required=True, metavar="OUT", help="output folder")
+    p.add_argument("--model", default="default", help="shipped model name, a .safetensors file, or none")
+    p.add_argument(
+        "--refine",
+        default="auto",
+        choices=["auto", "on", "off"],
+        help="refine by inverse rendering (auto: with 3 or more photos)",
+    )
+    p.add_argument("--steps", type=int, default=150, help="refinement steps per tile (default 150)")
+    p.add_argument("--tile", type=int, default=512, help="network tile size in pixels (default 512)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.set_defaults(func=cmd_reconstruct)
 
     p = sub.add_parser("render", help="render a map set under one point light")
     p.add_argument("maps", metavar="MAPS", help="map set folder, or @sample")

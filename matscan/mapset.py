@@ -243,32 +243,37 @@ def write_mapset(
 
     PNG bit depths follow the table above; EXR is float32 and exact.
     """
+    with atomic_folder(folder, overwrite=overwrite) as tmp:
+        write_maps(tmp, maps, file_format, extra_meta)
+    return Path(folder)
+
+
+def write_maps(folder: Path, maps: MapSet, file_format: str = "png", extra_meta: dict[str, Any] | None = None) -> None:
+    """Write the map files and ``mapset.json`` into an existing folder (each file atomically)."""
     if file_format not in ("png", "exr"):
         raise MatscanError(f"format: {file_format!r} is not one of png, exr")
     maps.check()
     meta: dict[str, Any] = {"format": MAPSET_FORMAT, "size": list(maps.size), "conventions": CONVENTIONS, "files": {}}
     if extra_meta:
         meta.update(extra_meta)
-    with atomic_folder(folder, overwrite=overwrite) as tmp:
-        for name, t in maps.present().items():
-            spec = SPECS[name]
-            t = t.detach().float()
-            if spec.encoding == "normal":
-                t = (normalize_normals(t) + 1) / 2
-            if file_format == "exr":
-                data, bits = t, 32
+    for name, t in maps.present().items():
+        spec = SPECS[name]
+        t = t.detach().float()
+        if spec.encoding == "normal":
+            t = (normalize_normals(t) + 1) / 2
+        if file_format == "exr":
+            data, bits = t, 32
+        else:
+            bits = spec.bits
+            if spec.encoding == "srgb":
+                data = linear_to_srgb(t.clamp(0, 1))
+            elif spec.encoding == "height":
+                lo, hi = float(t.min()), float(t.max())
+                meta["height"] = {"min_mm": lo, "max_mm": hi}
+                data = (t - lo) / (hi - lo) if hi > lo else torch.zeros_like(t)
             else:
-                bits = spec.bits
-                if spec.encoding == "srgb":
-                    data = linear_to_srgb(t.clamp(0, 1))
-                elif spec.encoding == "height":
-                    lo, hi = float(t.min()), float(t.max())
-                    meta["height"] = {"min_mm": lo, "max_mm": hi}
-                    data = (t - lo) / (hi - lo) if hi > lo else torch.zeros_like(t)
-                else:
-                    data = t
-            file = f"{name}.{file_format}"
-            write_image(tmp / file, data.permute(1, 2, 0).numpy(), bits=bits)
-            meta["files"][name] = {"file": file, "bits": bits}
-        (tmp / "mapset.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
-    return Path(folder)
+                data = t
+        file = f"{name}.{file_format}"
+        write_image(folder / file, data.permute(1, 2, 0).numpy(), bits=bits)
+        meta["files"][name] = {"file": file, "bits": bits}
+    (folder / "mapset.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")

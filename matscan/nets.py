@@ -228,9 +228,9 @@ class UNet(nn.Module):
         self.encoder = Encoder(in_channels, cfg, track=skip == "track")
         self.decoder = Decoder(OUT_CHANNELS[name], cfg, skip, HEADS[name])
 
-    def forward(self, x: Tensor) -> Tensor:
+    def forward(self, x: Tensor, pooled: list[Tensor] | None = None) -> Tensor:
         feats, g = self.encoder(x)
-        return self.decoder(feats, g)
+        return self.decoder(feats, g, pooled)
 
 
 class MapNets(nn.Module):
@@ -262,18 +262,40 @@ class MapNets(nn.Module):
     def multiple(self) -> int:
         return 2**self.cfg.depth
 
-    def forward(self, x: Tensor) -> dict[str, Tensor]:
+    def _pad(self, x: Tensor) -> Tensor:
         h, w = x.shape[-2:]
         m = self.multiple
         ph, pw = (-h) % m, (-w) % m
         if ph or pw:  # reflect-pad to a multiple of 2^depth; outputs are cropped back
             mode = "reflect" if ph < h and pw < w else "replicate"
             x = F.pad(x, (0, pw, 0, ph), mode=mode)
+        return x
+
+    @torch.no_grad()
+    def encoder_sums(self, x: Tensor) -> dict[str, list[Tensor]]:
+        """Per network, per level: the sum over pixels of the encoder features, (B, C).
+
+        Summed over tiles and divided by each level's pixel count, they give the
+        whole image's global averages that the global skips need (:meth:`forward`
+        ``pooled``)."""
+        x = self._pad(x)
+        if self.variant == "one_encoder":
+            feats, _ = self.shared(x)
+            sums = [f.sum(dim=(2, 3)) for f in feats]
+            return {name: sums for name in self.decoders}
+        return {name: [f.sum(dim=(2, 3)) for f in net.encoder(x)[0]] for name, net in self.nets.items()}
+
+    def forward(self, x: Tensor, pooled: dict[str, list[Tensor]] | None = None) -> dict[str, Tensor]:
+        """Maps from the encoded input. ``pooled`` (per network, per level (B, C)) replaces
+        the input's own global averages: tiled inference passes the whole image's."""
+        h, w = x.shape[-2:]
+        x = self._pad(x)
+        pooled = pooled or {}
         if self.variant == "one_encoder":
             feats, g = self.shared(x)
-            raw = {name: dec(feats, g) for name, dec in self.decoders.items()}
+            raw = {name: dec(feats, g, pooled.get(name)) for name, dec in self.decoders.items()}
         else:
-            raw = {name: net(x) for name, net in self.nets.items()}
+            raw = {name: net(x, pooled.get(name)) for name, net in self.nets.items()}
         out = {}
         for name, t in raw.items():
             t = t[..., :h, :w]

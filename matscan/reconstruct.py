@@ -1,0 +1,409 @@
+"""Capture → maps: network inference at any size, then refinement by inverse rendering.
+
+1. **Check** the capture: saturated fraction per photo, lights missing from the
+   rig's full set; each becomes a warning that says what to do.
+2. **Networks** (:func:`predict_maps`): the photos go into their rig-light slots
+   with presence planes (any subset of lights); images larger than ``tile`` are
+   processed in overlapping tiles blended with linear ramps, and the global-skip
+   averages are computed over the whole image first (summed over tiles), so
+   memory is bounded by the tile size.
+3. **Refinement** (:func:`refine_maps`): per-pixel maps, initialised from the
+   networks, are fitted to the photos through the differentiable renderer (L1 in
+   log space, saturated pixels masked), with a prior term holding each map near
+   the networks' where the photos say little, and a light smoothness term. A
+   capture whose light intensity is not calibrated (the ``flash`` rig) gets one
+   intensity scale fitted with the maps. Work is done in pixel tiles, so memory
+   stays bounded at any size.
+
+``reconstruct`` writes the maps (design.md conventions) and ``matscan.json``
+(rig, inputs, model, conventions, timings, mm per pixel, version).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from matscan import __version__
+from matscan.atomic import atomic_folder
+from matscan.capture import Capture, load_capture
+from matscan.errors import MatscanError
+from matscan.evaluate import flat_irradiance
+from matscan.mapset import CONVENTIONS, MapSet, normalize_normals, write_maps
+from matscan.nets import MapNets, encode_inputs
+from matscan.render import render, surface_points
+from matscan.rig import LightSet
+
+LOG_EPS = 0.01
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """How a capture is reconstructed."""
+
+    model: str = "default"
+    refine: str = "auto"  # "auto": on when the capture has at least 3 photos; "on"; "off"
+    refine_steps: int = 150
+    refine_lr: float = 0.02
+    prior_weight: float = 0.05
+    smooth_weight: float = 0.01
+    tile: int = 512
+    overlap: int = 64
+    refine_tile: int = 128
+    saturation_warn: float = 0.02
+
+
+@dataclass
+class Result:
+    maps: MapSet
+    warnings: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    intensity_scale: float = 1.0
+    refine_history: list[float] = field(default_factory=list)
+
+
+def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
+    """Warnings about a capture, each saying what to do."""
+    warnings = []
+    for file, sat in zip(capture.files, capture.saturated, strict=True):
+        frac = float(sat.float().mean())
+        if frac > cfg.saturation_warn:
+            warnings.append(
+                f"{file}: {frac:.1%} of pixels saturated; lower the exposure (they are left out of the fit)"
+            )
+    if not capture.rig.per_image_geometry:
+        missing = sorted(set(range(len(capture.rig.lights))) - {k for k in capture.light_indices if k is not None})
+        if missing:
+            warnings.append(
+                f"lights {', '.join(map(str, missing))} of rig {capture.rig.name} are missing; "
+                "reconstructing from the other photos"
+            )
+    return warnings
+
+
+# --- networks ----------------------------------------------------------------------------
+
+
+def _slots(capture: Capture, n_lights: int) -> tuple[Tensor, Tensor]:
+    h, w = capture.size
+    photos = torch.zeros(1, n_lights, 3, h, w)
+    present = torch.zeros(1, n_lights)
+    for img, k in zip(capture.images, capture.light_indices, strict=True):
+        photos[0, k] = img
+        present[0, k] = 1
+    return photos, present
+
+
+def _ramp(n: int, overlap: int, first: bool, last: bool) -> Tensor:
+    w = torch.ones(n)
+    if overlap > 0:
+        r = (torch.arange(overlap, dtype=torch.float32) + 0.5) / overlap
+        if not first:
+            w[:overlap] = r
+        if not last:
+            w[-overlap:] = r.flip(0)
+    return w
+
+
+def _starts(size: int, tile: int, overlap: int) -> list[int]:
+    if size <= tile:
+        return [0]
+    step = tile - overlap
+    starts = list(range(0, size - tile, step)) + [size - tile]
+    return sorted(set(starts))
+
+
+@torch.no_grad()
+def predict_maps(nets: MapNets, capture: Capture, tile: int = 512, overlap: int = 64, progress: bool = False) -> MapSet:
+    """The networks' maps for a capture of any size (see module doc, step 2)."""
+    if capture.rig.per_image_geometry:
+        raise MatscanError(
+            f"rig {capture.rig.name!r}: the networks are trained for fixed-light rigs; "
+            "use --refine on with --model none"
+        )
+    if nets.n_lights != len(capture.rig.lights):
+        raise MatscanError(
+            f"model: trained for {nets.n_lights} lights, but rig {capture.rig.name!r} has {len(capture.rig.lights)}"
+        )
+    nets.eval()
+    photos, present = _slots(capture, nets.n_lights)
+    h, w = capture.size
+    m = nets.multiple
+    tile = max(m, tile // m * m)
+    overlap = min(overlap, tile // 2)
+    full = torch.tensor([[h, w]])
+
+    def encoded(r0: int, c0: int, th: int, tw: int) -> Tensor:
+        return encode_inputs(photos[..., r0 : r0 + th, c0 : c0 + tw], present, torch.tensor([[r0, c0]]), full)
+
+    rows, cols = _starts(h, tile, overlap), _starts(w, tile, overlap)
+    pooled = None
+    if len(rows) * len(cols) > 1:  # global averages over the whole image, from non-overlapping tiles
+        totals: dict[str, list[Tensor]] = {}
+        for r0 in range(0, h, tile):
+            for c0 in range(0, w, tile):
+                th, tw = min(tile, h - r0), min(tile, w - c0)
+                for name, sums in nets.encoder_sums(encoded(r0, c0, th, tw)).items():
+                    acc = totals.setdefault(name, [torch.zeros_like(s) for s in sums])
+                    for a, s in zip(acc, sums, strict=True):
+                        a += s
+        pooled = {}
+        for name, sums in totals.items():
+            levels = []
+            for i, s in enumerate(sums):
+                count = math.ceil(h / 2**i) * math.ceil(w / 2**i)
+                levels.append(s / count)
+            pooled[name] = levels
+
+    out = {
+        name: torch.zeros(1, c, h, w)
+        for name, c in (("diffuse", 3), ("specular", 3), ("roughness", 1), ("normal", 3))
+        if name in nets.maps
+    }
+    weight = torch.zeros(1, 1, h, w)
+    tiles = [(r, c) for r in rows for c in cols]
+    for r0, c0 in tqdm(tiles, desc="networks", unit="tile", disable=not progress or len(tiles) == 1, leave=False):
+        th, tw = min(tile, h - r0), min(tile, w - c0)
+        pred = nets(encoded(r0, c0, th, tw), pooled)
+        wr = _ramp(th, overlap, r0 == 0, r0 + th >= h)
+        wc = _ramp(tw, overlap, c0 == 0, c0 + tw >= w)
+        wt = (wr[:, None] * wc[None, :])[None, None]
+        for name, t in pred.items():
+            out[name][..., r0 : r0 + th, c0 : c0 + tw] += t * wt
+        weight[..., r0 : r0 + th, c0 : c0 + tw] += wt
+    maps = {name: (t / weight)[0] for name, t in out.items()}
+    maps["normal"] = normalize_normals(maps["normal"])
+    maps["diffuse"] = maps["diffuse"].clamp(0, 1)
+    maps["specular"] = maps["specular"].clamp(0, 1)
+    maps["roughness"] = maps["roughness"].clamp(0, 1)
+    return MapSet(**maps)
+
+
+def flat_start(capture: Capture) -> MapSet:
+    """Maps to start refinement from without networks: albedo = median of photo ÷ flat
+    irradiance, flat normal, roughness 0.5, specular 0.04."""
+    h, w = capture.size
+    pts = surface_points(capture.field_mm, (h, w))
+    if capture.rig.per_image_geometry:
+        e = _flat_irradiance_lights(capture.lights, pts)
+    else:
+        e = flat_irradiance(capture.rig, list(capture.light_indices), pts)
+    rho = (capture.images / e.clamp_min(1e-3)).median(dim=0).values.clamp(0, 1)
+    normal = torch.zeros(3, h, w)
+    normal[2] = 1
+    return MapSet(rho, torch.full((3, h, w), 0.04), torch.full((1, h, w), 0.5), normal)
+
+
+def _flat_irradiance_lights(lights: LightSet, points: Tensor) -> Tensor:
+    lv = lights.position[:, None, None, :] - points[None]
+    d2 = (lv * lv).sum(-1)
+    l_dir = lv / d2.sqrt()[..., None]
+    lobe = (-(l_dir * lights.axis[:, None, None, :]).sum(-1)).clamp_min(0) ** lights.exponent[:, None, None]
+    e = (lights.reference_distance_mm**2 / d2) * lobe * l_dir[..., 2].clamp_min(0)
+    return lights.intensity[:, :, None, None] * e[:, None]
+
+
+# --- refinement -----------------------------------------------------------------------------
+
+
+def _to_params(maps: MapSet) -> dict[str, Tensor]:
+    n = maps.normal
+    nz = n[2:3].clamp_min(0.05)
+    return {
+        "diffuse": maps.diffuse.clone(),
+        "specular": maps.specular.clone(),
+        "roughness": maps.roughness.clone(),
+        "slope": torch.cat([n[0:1] / nz, n[1:2] / nz]),  # n ∝ (sx, sy, 1)
+    }
+
+
+def _to_maps(p: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    d = p["diffuse"].clamp(0, 1)
+    s = p["specular"].clamp(0, 1)
+    r = p["roughness"].clamp(0.02, 1)
+    sl = p["slope"]
+    n = torch.cat([sl, torch.ones_like(sl[:1])], dim=-3)
+    n = n / n.norm(dim=-3, keepdim=True)
+    return d, s, r, n
+
+
+def refine_maps(
+    start: MapSet,
+    capture: Capture,
+    steps: int = 150,
+    lr: float = 0.02,
+    prior_weight: float = 0.05,
+    smooth_weight: float = 0.01,
+    tile: int = 128,
+    fit_intensity: bool | None = None,
+    lights_used: list[int] | None = None,
+    progress: bool = False,
+) -> tuple[MapSet, float, list[float]]:
+    """Fit per-pixel maps to the photos by inverse rendering (module doc, step 3).
+
+    ``lights_used``: which photos (positions in the capture) to fit; all by default.
+    Returns (maps, intensity scale, mean data loss per step over the first tile).
+    """
+    h, w = capture.size
+    used = list(range(len(capture.files))) if lights_used is None else list(lights_used)
+    lights = capture.lights.select(used)
+    photos = capture.images[used]
+    valid = (~capture.saturated[used]).float()
+    if fit_intensity is None:
+        fit_intensity = capture.rig.per_image_geometry
+    points_all = surface_points(capture.field_mm, (h, w))
+    scale = torch.zeros((), requires_grad=bool(fit_intensity))  # log intensity scale
+    if fit_intensity:  # one global scale first, on a subsample, with the starting maps
+        scale = _fit_scale(start, photos, valid, lights, points_all)
+    out = {
+        name: t.clone() for name, t in start.present().items() if name in ("diffuse", "specular", "roughness", "normal")
+    }
+    history: list[float] = []
+    tiles = [(r, c) for r in range(0, h, tile) for c in range(0, w, tile)]
+    for t_index, (r0, c0) in enumerate(tqdm(tiles, desc="refine", unit="tile", disable=not progress, leave=False)):
+        th, tw = min(tile, h - r0), min(tile, w - c0)
+        crop = start.crop(r0, c0, th, tw)
+        params = {k: v.requires_grad_() for k, v in _to_params(crop).items()}
+        init = {k: v.detach().clone() for k, v in params.items()}
+        opt = torch.optim.Adam(params.values(), lr=lr)
+        target = torch.log(LOG_EPS + photos[..., r0 : r0 + th, c0 : c0 + tw])
+        mask = valid[..., r0 : r0 + th, c0 : c0 + tw]
+        pts = points_all[r0 : r0 + th, c0 : c0 + tw]
+        k = float(scale.exp())
+        for _ in range(steps):
+            d, s, r, n = _to_maps(params)
+            img = render(d, s, r, n, lights, pts) * k
+            data = ((torch.log(LOG_EPS + img) - target).abs() * mask).sum() / mask.sum().clamp_min(1) / 3
+            prior = sum(((params[key] - init[key]) ** 2).mean() for key in params)
+            smooth = sum(
+                (params[key][..., 1:, :] - params[key][..., :-1, :]).abs().mean()
+                + (params[key][..., :, 1:] - params[key][..., :, :-1]).abs().mean()
+                for key in ("diffuse", "roughness", "specular")
+            )
+            loss = data + prior_weight * prior + smooth_weight * smooth
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            if t_index == 0:
+                history.append(float(data.detach()))
+        d, s, r, n = (t.detach() for t in _to_maps(params))
+        for name, t in (("diffuse", d), ("specular", s), ("roughness", r), ("normal", n)):
+            out[name][..., r0 : r0 + th, c0 : c0 + tw] = t
+    extra = {k: v for k, v in start.present().items() if k not in out}
+    return MapSet(**out, **extra), float(scale.exp()), history
+
+
+def _fit_scale(start: MapSet, photos: Tensor, valid: Tensor, lights: LightSet, points: Tensor) -> Tensor:
+    """Least-squares log intensity scale of the photos against renderings of the start maps
+    (median of log ratios over unsaturated, lit pixels)."""
+    with torch.no_grad():
+        img = render(start.diffuse, start.specular, start.roughness, start.normal, lights, points)
+        ok = (valid > 0) & (img > 1e-3) & (photos > 1e-3)
+        ratio = torch.log(photos[ok.expand_as(photos)] / img[ok.expand_as(img)])
+        return ratio.median() if ratio.numel() else torch.zeros(())
+
+
+def rerender_error(maps: MapSet, capture: Capture, positions: list[int], scale: float = 1.0) -> float:
+    """RMSE between photos (at these capture positions) and renderings of ``maps``,
+    over unsaturated pixels."""
+    lights = capture.lights.select(positions)
+    pts = surface_points(capture.field_mm, capture.size)
+    with torch.no_grad():
+        img = render(maps.diffuse, maps.specular, maps.roughness, maps.normal, lights, pts) * scale
+    valid = ~capture.saturated[positions].expand_as(img)
+    diff = (img.clamp(0, 1) - capture.images[positions])[valid]
+    return float(diff.square().mean().sqrt())
+
+
+# --- the whole job -----------------------------------------------------------------------------
+
+
+def reconstruct_capture(
+    capture: Capture, cfg: ReconstructConfig = ReconstructConfig(), nets: MapNets | None = None, progress: bool = False
+) -> Result:
+    """Maps from a loaded capture (no files written)."""
+    timings: dict[str, float] = {}
+    warnings = check_capture(capture, cfg)
+    t0 = time.perf_counter()
+    if nets is not None and not capture.rig.per_image_geometry:
+        start = predict_maps(nets, capture, cfg.tile, cfg.overlap, progress)
+    else:
+        if nets is not None:
+            warnings.append(
+                f"rig {capture.rig.name}: the networks do not apply to per-image geometry; "
+                "starting refinement from flat maps"
+            )
+        start = flat_start(capture)
+    timings["networks_s"] = time.perf_counter() - t0
+    refine = cfg.refine == "on" or (cfg.refine == "auto" and len(capture.files) >= 3)
+    if cfg.refine not in ("auto", "on", "off"):
+        raise MatscanError(f"--refine: {cfg.refine!r} is not one of auto, on, off")
+    result = Result(start, warnings, timings)
+    if refine:
+        t0 = time.perf_counter()
+        maps, scale, hist = refine_maps(
+            start,
+            capture,
+            cfg.refine_steps,
+            cfg.refine_lr,
+            cfg.prior_weight,
+            cfg.smooth_weight,
+            cfg.refine_tile,
+            progress=progress,
+        )
+        timings["refine_s"] = time.perf_counter() - t0
+        result.maps, result.intensity_scale, result.refine_history = maps, scale, hist
+    return result
+
+
+def reconstruct(
+    capture_path: str | Path,
+    out: str | Path,
+    cfg: ReconstructConfig = ReconstructConfig(),
+    overwrite: bool = False,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """``matscan reconstruct``: read a capture, write maps and ``matscan.json``; return the record."""
+    t_all = time.perf_counter()
+    capture = load_capture(capture_path)
+    nets, model_meta, model_name = None, {}, "none"
+    if cfg.model != "none":
+        from matscan.weights import load_model, model_path
+
+        nets, model_meta = load_model(cfg.model)
+        model_name = str(model_path(cfg.model))
+    res = reconstruct_capture(capture, cfg, nets, progress)
+    positions = list(range(len(capture.files)))
+    error = rerender_error(res.maps, capture, positions, res.intensity_scale)
+    h, w = capture.size
+    record = {
+        "format": "matscan-reconstruction/1",
+        "matscan_version": __version__,
+        "capture": str(Path(capture_path)),
+        "rig": capture.rig.name,
+        "inputs": [{"file": f, "light": k} for f, k in zip(capture.files, capture.light_indices, strict=True)],
+        "size_px": [w, h],
+        "field_mm": list(capture.field_mm),
+        "mm_per_pixel": list(capture.mm_per_pixel),
+        "model": {"name": cfg.model, "file": model_name, "step": model_meta.get("step")},
+        "config": asdict(cfg),
+        "refined": bool(res.refine_history),
+        "intensity_scale": res.intensity_scale,
+        "rerender_rmse": error,
+        "warnings": res.warnings,
+        "conventions": CONVENTIONS,
+        "timings_s": {k: round(v, 3) for k, v in res.timings.items()},
+    }
+    with atomic_folder(out, overwrite=overwrite) as tmp:
+        write_maps(tmp, res.maps)
+        record["timings_s"]["total_s"] = round(time.perf_counter() - t_all, 3)
+        (tmp / "matscan.json").write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+    return record
