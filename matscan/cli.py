@@ -75,7 +75,9 @@ def cmd_simulate(args: argparse.Namespace) -> str:
 def cmd_reconstruct(args: argparse.Namespace) -> str:
     from matscan.reconstruct import ReconstructConfig, reconstruct
 
-    cfg = ReconstructConfig(model=args.model, refine=args.refine, refine_steps=args.steps, tile=args.tile)
+    cfg = ReconstructConfig(
+        model=args.model, refine=args.refine, refine_steps=args.steps, tile=args.tile, emissive=args.emissive
+    )
     rec = reconstruct(_capture_arg(args.capture), args.out, cfg, overwrite=args.overwrite, progress=True)
     for warning in rec["warnings"]:
         print(f"matscan: warning: {warning}", file=sys.stderr)
@@ -252,6 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--steps", type=int, default=150, help="refinement steps per tile (default 150)")
     p.add_argument("--tile", type=int, default=512, help="network tile size in pixels (default 512)")
+    p.add_argument("--emissive", action="store_true", help="also fit an emissive map (fluorescent inks)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(func=cmd_reconstruct)
 

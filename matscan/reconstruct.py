@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 from tqdm import tqdm
 
@@ -59,6 +60,7 @@ class ReconstructConfig:
     overlap: int = 64
     refine_tile: int = 128
     saturation_warn: float = 0.02
+    emissive: bool = False  # also fit an emissive map (light the sample gives off under any LED)
 
 
 @dataclass
@@ -245,11 +247,13 @@ def refine_maps(
     tile: int = 128,
     fit_intensity: bool | None = None,
     lights_used: list[int] | None = None,
+    emissive: bool = False,
     progress: bool = False,
 ) -> tuple[MapSet, float, list[float]]:
     """Fit per-pixel maps to the photos by inverse rendering (module doc, step 3).
 
     ``lights_used``: which photos (positions in the capture) to fit; all by default.
+    ``emissive``: also fit a per-pixel emission added to every photo (non-negative).
     Returns (maps, intensity scale, mean data loss per step over the first tile).
     """
     h, w = capture.size
@@ -260,18 +264,23 @@ def refine_maps(
     if fit_intensity is None:
         fit_intensity = capture.rig.per_image_geometry
     points_all = surface_points(capture.field_mm, (h, w))
-    scale = torch.zeros((), requires_grad=bool(fit_intensity))  # log intensity scale
-    if fit_intensity:  # one global scale first, on a subsample, with the starting maps
+    scale = torch.zeros(())  # log intensity scale
+    if fit_intensity:  # one global scale, from the starting maps
         scale = _fit_scale(start, photos, valid, lights, points_all)
     out = {
         name: t.clone() for name, t in start.present().items() if name in ("diffuse", "specular", "roughness", "normal")
     }
+    if emissive:
+        out["emissive"] = torch.zeros(3, h, w)
     history: list[float] = []
     tiles = [(r, c) for r in range(0, h, tile) for c in range(0, w, tile)]
     for t_index, (r0, c0) in enumerate(tqdm(tiles, desc="refine", unit="tile", disable=not progress, leave=False)):
         th, tw = min(tile, h - r0), min(tile, w - c0)
         crop = start.crop(r0, c0, th, tw)
-        params = {k: v.requires_grad_() for k, v in _to_params(crop).items()}
+        params = _to_params(crop)
+        if emissive:
+            params["emissive"] = torch.zeros(3, th, tw)
+        params = {k: v.requires_grad_() for k, v in params.items()}
         init = {k: v.detach().clone() for k, v in params.items()}
         opt = torch.optim.Adam(params.values(), lr=lr)
         target = torch.log(LOG_EPS + photos[..., r0 : r0 + th, c0 : c0 + tw])
@@ -281,6 +290,8 @@ def refine_maps(
         for _ in range(steps):
             d, s, r, n = _to_maps(params)
             img = render(d, s, r, n, lights, pts) * k
+            if emissive:
+                img = img + params["emissive"].clamp_min(0)
             data = ((torch.log(LOG_EPS + img) - target).abs() * mask).sum() / mask.sum().clamp_min(1) / 3
             prior = sum(((params[key] - init[key]) ** 2).mean() for key in params)
             smooth = sum(
@@ -297,18 +308,51 @@ def refine_maps(
         d, s, r, n = (t.detach() for t in _to_maps(params))
         for name, t in (("diffuse", d), ("specular", s), ("roughness", r), ("normal", n)):
             out[name][..., r0 : r0 + th, c0 : c0 + tw] = t
+        if emissive:
+            out["emissive"][..., r0 : r0 + th, c0 : c0 + tw] = params["emissive"].detach().clamp_min(0)
     extra = {k: v for k, v in start.present().items() if k not in out}
     return MapSet(**out, **extra), float(scale.exp()), history
 
 
-def _fit_scale(start: MapSet, photos: Tensor, valid: Tensor, lights: LightSet, points: Tensor) -> Tensor:
-    """Least-squares log intensity scale of the photos against renderings of the start maps
-    (median of log ratios over unsaturated, lit pixels)."""
-    with torch.no_grad():
-        img = render(start.diffuse, start.specular, start.roughness, start.normal, lights, points)
-        ok = (valid > 0) & (img > 1e-3) & (photos > 1e-3)
-        ratio = torch.log(photos[ok.expand_as(photos)] / img[ok.expand_as(img)])
-        return ratio.median() if ratio.numel() else torch.zeros(())
+def _fit_scale(
+    start: MapSet, photos: Tensor, valid: Tensor, lights: LightSet, points: Tensor, steps: int = 150, size: int = 48
+) -> Tensor:
+    """Log intensity scale k of an uncalibrated capture.
+
+    Diffuse light only fixes k·ρ; the highlights fix k, because dielectric F0 is
+    known (0.04): on a downsampled image, fit one k and one roughness, with flat
+    normals, F0 = 0.04 and the albedo that best explains each pixel given k (the
+    median over photos of photo ÷ (k · irradiance) minus the specular part), by
+    minimising the log-space L1 over unsaturated pixels (robust to the few metal
+    pixels that break the F0 assumption). Dielectric F0 spans about 0.03–0.05, so
+    the scale is known to about ±25%; a calibrated capture needs none of this.
+    """
+    h, w = photos.shape[-2:]
+    factor = max(1, max(h, w) // size)
+    if factor > 1:
+        photos = F.avg_pool2d(photos, factor)
+        valid = (F.avg_pool2d(valid, factor) > 0.999).float()
+        points = F.avg_pool2d(points.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0)
+    hh, ww = photos.shape[-2:]
+    normal = torch.zeros(3, hh, ww)
+    normal[2] = 1
+    f0 = torch.full((3, hh, ww), 0.04)
+    irr = _flat_irradiance_lights(lights, points)
+    log_k = torch.zeros((), requires_grad=True)
+    rough = torch.zeros((), requires_grad=True)  # logit of roughness
+    opt = torch.optim.Adam([log_k, rough], lr=0.05)
+    target = torch.log(LOG_EPS + photos)
+    for _ in range(steps):
+        k = log_k.exp()
+        r = torch.sigmoid(rough).expand(1, hh, ww)
+        spec = render(torch.zeros(3, hh, ww), f0, r, normal, lights, points)
+        rho = ((photos / k - spec) / irr.clamp_min(1e-3)).median(dim=0).values.clamp(0, 1).detach()
+        img = k * render(rho, f0, r, normal, lights, points)
+        loss = ((torch.log(LOG_EPS + img) - target).abs() * valid).sum() / valid.sum().clamp_min(1)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return log_k.detach()
 
 
 def rerender_error(maps: MapSet, capture: Capture, positions: list[int], scale: float = 1.0) -> float:
@@ -321,6 +365,50 @@ def rerender_error(maps: MapSet, capture: Capture, positions: list[int], scale: 
     valid = ~capture.saturated[positions].expand_as(img)
     diff = (img.clamp(0, 1) - capture.images[positions])[valid]
     return float(diff.square().mean().sqrt())
+
+
+# --- special materials (paper §4.5) ------------------------------------------------------------
+
+
+def alpha_from_backlight(backlight: dict[str, Tensor]) -> Tensor:
+    """Alpha by triangulation matting (Smith & Blinn 1996; the paper's Eq. 12).
+
+    With the sample over the green and the blue stage, C_k = F + (1 − α) B_k, and the
+    empty stage photographed as B_k: C_g − C_b = (1 − α)(B_g − B_b), solved for
+    (1 − α) in least squares over RGB. Returns (1, H, W) in [0, 1].
+    """
+    missing = [k for k in ("green", "blue", "green_empty", "blue_empty") if k not in backlight]
+    if missing:
+        raise MatscanError(f"backlight: alpha needs the {', '.join(missing)} photo(s)")
+    dc = backlight["green"] - backlight["blue"]
+    db = backlight["green_empty"] - backlight["blue_empty"]
+    transparency = (dc * db).sum(0, keepdim=True) / (db * db).sum(0, keepdim=True).clamp_min(1e-6)
+    return (1 - transparency).clamp(0, 1)
+
+
+def height_from_normals(normal: Tensor, mm_per_px: tuple[float, float]) -> Tensor:
+    """Height (1, H, W) in mm, zero mean, integrated from unit normals (3, H, W).
+
+    Frankot & Chellappa 1988: the least-squares surface whose gradient best matches
+    (∂h/∂x, ∂h/∂y) = (−n_x/n_z, −n_y/n_z), found in the Fourier domain (periodic
+    boundary). x grows with columns, y with −rows (design.md).
+    """
+    nz = normal[2].clamp_min(0.05)
+    p = -normal[0] / nz  # ∂h/∂x, per mm
+    q = -normal[1] / nz  # ∂h/∂y
+    h, w = p.shape
+    dx, dy = mm_per_px
+    # in pixel steps along columns (j) and rows (i): ∂h/∂j = p·dx, ∂h/∂i = −q·dy
+    gj, gi = p * dx, -q * dy
+    wj = 2 * math.pi * torch.fft.fftfreq(w, dtype=torch.float64)[None, :]
+    wi = 2 * math.pi * torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
+    gj_f = torch.fft.fft2(gj.double())
+    gi_f = torch.fft.fft2(gi.double())
+    denom = wj**2 + wi**2
+    denom[0, 0] = 1
+    hf = (-1j * wj * gj_f - 1j * wi * gi_f) / denom
+    hf[0, 0] = 0
+    return torch.fft.ifft2(hf).real.float()[None]
 
 
 # --- the whole job -----------------------------------------------------------------------------
@@ -357,11 +445,33 @@ def reconstruct_capture(
             cfg.prior_weight,
             cfg.smooth_weight,
             cfg.refine_tile,
+            emissive=cfg.emissive,
             progress=progress,
         )
         timings["refine_s"] = time.perf_counter() - t0
         result.maps, result.intensity_scale, result.refine_history = maps, scale, hist
+    elif cfg.emissive:
+        warnings.append("--emissive needs refinement; no emissive map was fitted")
+    result.maps = with_special_maps(result.maps, capture, warnings)
     return result
+
+
+def with_special_maps(maps: MapSet, capture: Capture, warnings: list[str]) -> MapSet:
+    """Add alpha (from backlight photos, when the capture has them), height (from the
+    normals) and the metal/rough workflow (basecolor, metallic)."""
+    from matscan.brdf import specular_to_metallic
+
+    extra = {}
+    if capture.backlight:
+        try:
+            extra["alpha"] = alpha_from_backlight(capture.backlight)
+        except MatscanError as exc:
+            warnings.append(f"{exc}; no alpha map")
+    extra["height"] = height_from_normals(maps.normal, capture.mm_per_pixel)
+    extra["basecolor"], extra["metallic"] = specular_to_metallic(maps.diffuse, maps.specular)
+    present = maps.present()
+    present.update(extra)
+    return MapSet(**present)
 
 
 def reconstruct(
