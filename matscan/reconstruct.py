@@ -325,7 +325,9 @@ def _fit_scale(
     median over photos of photo ÷ (k · irradiance) minus the specular part), by
     minimising the log-space L1 over unsaturated pixels (robust to the few metal
     pixels that break the F0 assumption). Dielectric F0 spans about 0.03–0.05, so
-    the scale is known to about ±25%; a calibrated capture needs none of this.
+    the scale is known to about ±25% — when the highlights are not saturated (they
+    are masked, and with them goes what fixes the scale). A calibrated capture
+    needs none of this.
     """
     h, w = photos.shape[-2:]
     factor = max(1, max(h, w) // size)
