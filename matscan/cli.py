@@ -255,6 +255,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=150, help="refinement steps per tile (default 150)")
     p.add_argument("--tile", type=int, default=512, help="network tile size in pixels (default 512)")
     p.add_argument("--emissive", action="store_true", help="also fit an emissive map (fluorescent inks)")
+    p.add_argument("--exr", action="store_true", help="also write every map as float EXR (exr/)")
+    p.add_argument(
+        "--directx-normals",
+        dest="directx_normals",
+        action="store_true",
+        help="also write normal_directx.png (green flipped)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(func=cmd_reconstruct)
 

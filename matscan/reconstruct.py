@@ -61,6 +61,8 @@ class ReconstructConfig:
     refine_tile: int = 128
     saturation_warn: float = 0.02
     emissive: bool = False  # also fit an emissive map (light the sample gives off under any LED)
+    exr: bool = False  # also write every map as float EXR under exr/
+    directx_normals: bool = False  # also write normal_directx.png
 
 
 @dataclass
@@ -516,6 +518,9 @@ def reconstruct(
     }
     with atomic_folder(out, overwrite=overwrite) as tmp:
         write_maps(tmp, res.maps)
+        from matscan.export import export_all
+
+        record["exports"] = export_all(tmp, res.maps, capture.field_mm, cfg.exr, cfg.directx_normals)
         record["timings_s"]["total_s"] = round(time.perf_counter() - t_all, 3)
         (tmp / "matscan.json").write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
     return record

@@ -1,0 +1,272 @@
+"""Exports that state their conventions: glTF 2.0, MaterialX, EXR maps, DirectX normals.
+
+* **glTF 2.0** (``material.gltf`` + ``material.bin``): a quad of the sample's real
+  size (metres, in the glTF x–y plane facing +z, uv (0, 0) at the image's top-left
+  = the sample's (−x, +y) corner), with a metallic-roughness material: base colour
+  (RGB, plus alpha when the material has holes: alphaMode MASK, or BLEND when
+  alpha takes many in-between values), metallicRoughnessTexture (G roughness,
+  B metallic, as the glTF specification packs them), the normal map (glTF's
+  tangent frame is ours: +x right, +y up), emission, and
+  ``KHR_materials_specular`` where the specular colour is not what the
+  metal/rough conversion gives back.
+* **MaterialX** (``material.mtlx``): a ``standard_surface`` reading the same
+  textures (base colour in sRGB, the rest raw).
+* **EXR maps** (``exr/``): every map as float32 EXR, linear.
+* **DirectX normals** (``normal_directx.png``): green flipped, for engines that
+  want that convention.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from matscan.brdf import DIELECTRIC_F0, metallic_to_specular, specular_to_metallic
+from matscan.color import linear_to_srgb
+from matscan.imagefile import write_image
+from matscan.mapset import MapSet, write_maps
+
+#: Mean |F0 error| of the metal/rough round trip above which glTF gets KHR_materials_specular.
+SPECULAR_EXTENSION_THRESHOLD = 0.01
+
+
+def _hwc(t: torch.Tensor) -> np.ndarray:
+    return t.detach().float().permute(1, 2, 0).numpy()
+
+
+def _metal_rough(maps: MapSet) -> tuple[torch.Tensor, torch.Tensor]:
+    if maps.basecolor is not None and maps.metallic is not None:
+        return maps.basecolor, maps.metallic
+    return specular_to_metallic(maps.diffuse, maps.specular)
+
+
+def write_textures(folder: Path, maps: MapSet) -> dict[str, str]:
+    """The PNG textures the glTF and MaterialX documents read; returns their file names."""
+    base, metal = _metal_rough(maps)
+    files = {}
+    rgb = linear_to_srgb(base.clamp(0, 1))
+    if maps.alpha is not None:
+        rgb = torch.cat([rgb, maps.alpha.clamp(0, 1)])
+    write_image(folder / "tex_basecolor.png", _hwc(rgb), bits=8)
+    files["basecolor"] = "tex_basecolor.png"
+    mr = torch.cat([torch.ones_like(metal), maps.roughness.clamp(0, 1), metal.clamp(0, 1)])
+    write_image(folder / "tex_metallic_roughness.png", _hwc(mr), bits=8)
+    files["metallic_roughness"] = "tex_metallic_roughness.png"
+    write_image(folder / "tex_roughness.png", _hwc(maps.roughness.clamp(0, 1)), bits=8)
+    files["roughness"] = "tex_roughness.png"
+    write_image(folder / "tex_metallic.png", _hwc(metal.clamp(0, 1)), bits=8)
+    files["metallic"] = "tex_metallic.png"
+    write_image(folder / "tex_normal.png", _hwc((maps.normal + 1) / 2), bits=8)
+    files["normal"] = "tex_normal.png"
+    if maps.emissive is not None:
+        write_image(folder / "tex_emissive.png", _hwc(linear_to_srgb(maps.emissive.clamp(0, 1))), bits=8)
+        files["emissive"] = "tex_emissive.png"
+    if maps.alpha is not None:
+        write_image(folder / "tex_opacity.png", _hwc(maps.alpha.clamp(0, 1)), bits=8)
+        files["opacity"] = "tex_opacity.png"
+    return files
+
+
+def specular_residual(maps: MapSet) -> float:
+    """Mean |F0 − F0 of the metal/rough round trip|: what glTF's core material would lose."""
+    base, metal = _metal_rough(maps)
+    _, f0 = metallic_to_specular(base, metal)
+    return float((f0 - maps.specular).abs().mean())
+
+
+def gltf_document(
+    maps: MapSet, field_mm: tuple[float, float], textures: dict[str, str], folder: Path, name: str = "material"
+) -> dict[str, Any]:
+    """Write ``name.bin`` (the quad) and return the glTF JSON object."""
+    w, h = field_mm[0] / 1000, field_mm[1] / 1000
+    positions = [(-w / 2, h / 2, 0.0), (w / 2, h / 2, 0.0), (w / 2, -h / 2, 0.0), (-w / 2, -h / 2, 0.0)]
+    uvs = [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)]
+    normals = [(0.0, 0.0, 1.0)] * 4
+    tangents = [(1.0, 0.0, 0.0, 1.0)] * 4
+    indices = [0, 3, 2, 0, 2, 1]  # counter-clockwise seen from +z
+    blob = b"".join(struct.pack("<3f", *p) for p in positions)
+    blob += b"".join(struct.pack("<3f", *n) for n in normals)
+    blob += b"".join(struct.pack("<4f", *t) for t in tangents)
+    blob += b"".join(struct.pack("<2f", *u) for u in uvs)
+    blob += struct.pack("<6H", *indices) + b"\0\0"
+    (folder / f"{name}.bin").write_bytes(blob)
+    views = [
+        {"buffer": 0, "byteOffset": 0, "byteLength": 48, "target": 34962},
+        {"buffer": 0, "byteOffset": 48, "byteLength": 48, "target": 34962},
+        {"buffer": 0, "byteOffset": 96, "byteLength": 64, "target": 34962},
+        {"buffer": 0, "byteOffset": 160, "byteLength": 32, "target": 34962},
+        {"buffer": 0, "byteOffset": 192, "byteLength": 12, "target": 34963},
+    ]
+    accessors = [
+        {
+            "bufferView": 0,
+            "componentType": 5126,
+            "count": 4,
+            "type": "VEC3",
+            "min": [-w / 2, -h / 2, 0.0],
+            "max": [w / 2, h / 2, 0.0],
+        },
+        {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC3"},
+        {"bufferView": 2, "componentType": 5126, "count": 4, "type": "VEC4"},
+        {"bufferView": 3, "componentType": 5126, "count": 4, "type": "VEC2"},
+        {"bufferView": 4, "componentType": 5123, "count": 6, "type": "SCALAR"},
+    ]
+    images, tex_index = [], {}
+    for key, file in textures.items():
+        if key in ("basecolor", "metallic_roughness", "normal", "emissive", "specular_color"):
+            tex_index[key] = len(images)
+            images.append({"uri": file})
+    material: dict[str, Any] = {
+        "name": name,
+        "pbrMetallicRoughness": {
+            "baseColorTexture": {"index": tex_index["basecolor"]},
+            "metallicRoughnessTexture": {"index": tex_index["metallic_roughness"]},
+            "metallicFactor": 1.0,
+            "roughnessFactor": 1.0,
+        },
+        "normalTexture": {"index": tex_index["normal"]},
+        "doubleSided": False,
+    }
+    extensions_used = []
+    if "emissive" in tex_index:
+        material["emissiveTexture"] = {"index": tex_index["emissive"]}
+        material["emissiveFactor"] = [1.0, 1.0, 1.0]
+    if maps.alpha is not None:
+        a = maps.alpha
+        between = float(((a > 0.05) & (a < 0.95)).float().mean())
+        material["alphaMode"] = "BLEND" if between > 0.1 else "MASK"
+        if material["alphaMode"] == "MASK":
+            material["alphaCutoff"] = 0.5
+    if "specular_color" in tex_index:
+        material["extensions"] = {
+            "KHR_materials_specular": {
+                "specularFactor": 1.0,
+                "specularColorTexture": {"index": tex_index["specular_color"]},
+                "specularColorFactor": [textures["specular_color_factor"]] * 3,  # type: ignore[list-item]
+            }
+        }
+        extensions_used.append("KHR_materials_specular")
+    doc: dict[str, Any] = {
+        "asset": {
+            "version": "2.0",
+            "generator": "matscan",
+            "extras": {
+                "conventions": "sample in the x-y plane facing +z, metres; normal map in glTF's "
+                "tangent frame (+x right, +y up); roughness is perceptual (alpha = r^2)"
+            },
+        },
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": name}],
+        "meshes": [
+            {
+                "name": name,
+                "primitives": [
+                    {
+                        "attributes": {"POSITION": 0, "NORMAL": 1, "TANGENT": 2, "TEXCOORD_0": 3},
+                        "indices": 4,
+                        "material": 0,
+                    }
+                ],
+            }
+        ],
+        "materials": [material],
+        "textures": [{"source": i, "sampler": 0} for i in range(len(images))],
+        "images": images,
+        "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 10497, "wrapT": 10497}],
+        "buffers": [{"uri": f"{name}.bin", "byteLength": len(blob)}],
+        "bufferViews": views,
+        "accessors": accessors,
+    }
+    if extensions_used:
+        doc["extensionsUsed"] = extensions_used
+    return doc
+
+
+def materialx_document(textures: dict[str, str], name: str = "material") -> str:
+    """A MaterialX 1.39 document: standard_surface reading the textures."""
+    nodes = [
+        f'  <image name="basecolor" type="color3"><input name="file" type="filename" '
+        f'value="{textures["basecolor"]}" colorspace="srgb_texture" /></image>',
+        f'  <image name="roughness" type="float"><input name="file" type="filename" '
+        f'value="{textures["roughness"]}" /></image>',
+        f'  <image name="metallic" type="float"><input name="file" type="filename" '
+        f'value="{textures["metallic"]}" /></image>',
+        f'  <image name="normaltex" type="vector3"><input name="file" type="filename" '
+        f'value="{textures["normal"]}" /></image>',
+        '  <normalmap name="normalmap" type="vector3"><input name="in" type="vector3" nodename="normaltex" />'
+        "</normalmap>",
+    ]
+    inputs = [
+        '    <input name="base" type="float" value="1.0" />',
+        '    <input name="base_color" type="color3" nodename="basecolor" />',
+        '    <input name="metalness" type="float" nodename="metallic" />',
+        '    <input name="specular" type="float" value="1.0" />',
+        '    <input name="specular_IOR" type="float" value="1.5" />',
+        '    <input name="specular_roughness" type="float" nodename="roughness" />',
+        '    <input name="normal" type="vector3" nodename="normalmap" />',
+    ]
+    if "emissive" in textures:
+        nodes.append(
+            f'  <image name="emissive" type="color3"><input name="file" type="filename" '
+            f'value="{textures["emissive"]}" colorspace="srgb_texture" /></image>'
+        )
+        inputs += [
+            '    <input name="emission" type="float" value="1.0" />',
+            '    <input name="emission_color" type="color3" nodename="emissive" />',
+        ]
+    if "opacity" in textures:
+        nodes.append(
+            f'  <image name="opacity" type="float"><input name="file" type="filename" '
+            f'value="{textures["opacity"]}" /></image>'
+        )
+        inputs.append('    <input name="opacity" type="color3" nodename="opacity_rgb" />')
+        nodes.append(
+            '  <convert name="opacity_rgb" type="color3"><input name="in" type="float" nodename="opacity" /></convert>'
+        )
+    body = "\n".join(nodes)
+    surface = "\n".join(inputs)
+    return (
+        '<?xml version="1.0"?>\n'
+        '<materialx version="1.39" colorspace="lin_rec709">\n'
+        "  <!-- matscan: roughness is perceptual (GGX alpha = r^2); normals in the OpenGL tangent frame -->\n"
+        f"{body}\n"
+        f'  <standard_surface name="{name}_surface" type="surfaceshader">\n{surface}\n  </standard_surface>\n'
+        f'  <surfacematerial name="{name}" type="material">\n'
+        f'    <input name="surfaceshader" type="surfaceshader" nodename="{name}_surface" />\n'
+        "  </surfacematerial>\n"
+        "</materialx>\n"
+    )
+
+
+def export_all(
+    folder: Path, maps: MapSet, field_mm: tuple[float, float], exr: bool = False, directx_normals: bool = False
+) -> list[str]:
+    """Write the exports into an existing output folder; returns the files written."""
+    textures = write_textures(folder, maps)
+    written = list(textures.values())
+    if specular_residual(maps) > SPECULAR_EXTENSION_THRESHOLD:
+        ratio = (maps.specular / DIELECTRIC_F0).clamp(0, 25)
+        factor = max(1.0, float(ratio.max()))
+        write_image(folder / "tex_specular_color.png", _hwc(linear_to_srgb(ratio / factor)), bits=8)
+        textures["specular_color"] = "tex_specular_color.png"
+        textures["specular_color_factor"] = factor  # type: ignore[assignment]
+        written.append("tex_specular_color.png")
+    doc = gltf_document(maps, field_mm, textures, folder)
+    (folder / "material.gltf").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    (folder / "material.mtlx").write_text(materialx_document(textures), encoding="utf-8")
+    written += ["material.gltf", "material.bin", "material.mtlx"]
+    if exr:
+        (folder / "exr").mkdir(exist_ok=True)
+        write_maps(folder / "exr", maps, file_format="exr")
+        written.append("exr/")
+    if directx_normals:
+        dx = maps.normal * torch.tensor([1.0, -1.0, 1.0]).view(3, 1, 1)
+        write_image(folder / "normal_directx.png", _hwc((dx + 1) / 2), bits=16)
+        written.append("normal_directx.png")
+    return written

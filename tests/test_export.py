@@ -1,0 +1,98 @@
+"""Exports: the glTF loads with pygltflib and says what the maps say; the MaterialX document validates."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+import torch
+
+from matscan.brdf import metallic_to_specular
+from matscan.color import srgb_to_linear
+from matscan.export import export_all, specular_residual
+from matscan.imagefile import read_image
+from matscan.mapset import MapSet
+
+
+def _maps(alpha=None, coloured_dielectric=False):
+    size = 8
+    g = torch.Generator().manual_seed(0)
+    base = torch.rand(3, size, size, generator=g) * 0.8 + 0.1
+    metal = (torch.arange(size) >= 4).float().view(1, 1, size).expand(1, size, size).clone()
+    diffuse, specular = metallic_to_specular(base, metal)
+    if coloured_dielectric:
+        specular = torch.tensor([0.02, 0.05, 0.09]).view(3, 1, 1).expand(3, size, size).clone()
+        diffuse = base
+    normal = torch.zeros(3, size, size)
+    normal[0], normal[2] = 0.6, 0.8
+    return MapSet(
+        diffuse,
+        specular,
+        torch.full((1, size, size), 0.4),
+        normal,
+        alpha=alpha,
+        basecolor=None if coloured_dielectric else base,
+        metallic=None if coloured_dielectric else metal,
+    )
+
+
+def test_gltf_loads_and_matches_the_maps(tmp_path):
+    import pygltflib
+
+    maps = _maps()
+    export_all(tmp_path, maps, (120.0, 60.0), exr=True, directx_normals=True)
+    gltf = pygltflib.GLTF2().load(str(tmp_path / "material.gltf"))
+    mat = gltf.materials[0]
+    assert mat.pbrMetallicRoughness.metallicFactor == 1.0 and mat.alphaMode == "OPAQUE"
+    assert gltf.extensionsUsed in ([], None)  # metal/rough represents these maps exactly
+    # the quad is the sample's real size in metres
+    blob = (tmp_path / "material.bin").read_bytes()
+    xs = [struct.unpack_from("<3f", blob, 12 * i) for i in range(4)]
+    assert max(p[0] for p in xs) == pytest.approx(0.06) and max(p[1] for p in xs) == pytest.approx(0.03)
+    images = [im.uri for im in gltf.images]
+    base = read_image(tmp_path / images[mat.pbrMetallicRoughness.baseColorTexture.index]).pixels
+    np.testing.assert_allclose(
+        srgb_to_linear(torch.from_numpy(base)).numpy(), maps.basecolor.permute(1, 2, 0).numpy(), atol=0.01
+    )
+    mr = read_image(tmp_path / images[mat.pbrMetallicRoughness.metallicRoughnessTexture.index]).pixels
+    np.testing.assert_allclose(mr[..., 1], 0.4, atol=1 / 255)  # G: roughness
+    np.testing.assert_allclose(mr[..., 2], maps.metallic[0].numpy(), atol=1 / 255)  # B: metallic
+    n = read_image(tmp_path / images[mat.normalTexture.index]).pixels * 2 - 1
+    np.testing.assert_allclose(n[0, 0], [0.6, 0.0, 0.8], atol=0.01)
+    dx = read_image(tmp_path / "normal_directx.png").pixels * 2 - 1
+    assert dx[0, 0, 1] == pytest.approx(-n[0, 0, 1], abs=0.01)
+    assert (tmp_path / "exr" / "diffuse.exr").is_file()
+
+
+def test_alpha_and_specular_extension(tmp_path):
+    import pygltflib
+
+    alpha = (torch.arange(8) % 2).float().view(1, 1, 8).expand(1, 8, 8).clone()
+    maps = _maps(alpha=alpha, coloured_dielectric=True)
+    assert specular_residual(maps) > 0.01
+    export_all(tmp_path, maps, (10.0, 10.0))
+    gltf = pygltflib.GLTF2().load(str(tmp_path / "material.gltf"))
+    mat = gltf.materials[0]
+    assert mat.alphaMode == "MASK" and mat.alphaCutoff == 0.5
+    assert "KHR_materials_specular" in gltf.extensionsUsed
+    ext = json.loads((tmp_path / "material.gltf").read_text())["materials"][0]["extensions"]["KHR_materials_specular"]
+    # specularColor · 0.04 gives F0 back: 0.09 / 0.04 = 2.25 at most → factor 2.25
+    assert ext["specularColorFactor"][0] == pytest.approx(2.25, rel=1e-4)
+    rgba = read_image(tmp_path / "tex_basecolor.png").pixels
+    assert rgba.shape[2] == 4 and rgba[0, 1, 3] == 1.0 and rgba[0, 0, 3] == 0.0
+
+
+def test_materialx_validates(tmp_path):
+    import MaterialX as mx
+
+    export_all(tmp_path, _maps(alpha=torch.ones(1, 8, 8)), (10.0, 10.0))
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(tmp_path / "material.mtlx"))
+    stdlib = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), stdlib)
+    doc.importLibrary(stdlib)
+    valid, message = doc.validate()
+    assert valid, message
+    assert doc.getNode("material") is not None
