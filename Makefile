@@ -22,6 +22,10 @@ demo: $(STAMP)
 	@echo "demo: open $(DEMO)/contact_sheet.png"
 
 test: $(STAMP)
+	@command -v chromium >/dev/null || command -v chromium-browser >/dev/null || \
+		{ echo "installing Debian's chromium for the report test"; \
+		  (apt-get update -qq && apt-get install -y -qq chromium) >/dev/null 2>&1 || \
+		  echo "chromium could not be installed: the browser test will be skipped"; }
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)

@@ -76,7 +76,14 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
     from matscan.reconstruct import ReconstructConfig, reconstruct
 
     cfg = ReconstructConfig(
-        model=args.model, refine=args.refine, refine_steps=args.steps, tile=args.tile, emissive=args.emissive
+        model=args.model,
+        refine=args.refine,
+        refine_steps=args.steps,
+        tile=args.tile,
+        emissive=args.emissive,
+        exr=args.exr,
+        directx_normals=args.directx_normals,
+        validate=args.validate,
     )
     rec = reconstruct(_capture_arg(args.capture), args.out, cfg, overwrite=args.overwrite, progress=True)
     for warning in rec["warnings"]:
@@ -85,7 +92,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
     return (
         f"reconstruct: wrote maps of {w}×{h} px ({rec['mm_per_pixel'][0]:.3f} mm/px) from {len(rec['inputs'])} photos "
         f"to {args.out}; model {rec['model']['name']}, refined {'yes' if rec['refined'] else 'no'}; "
-        f"re-render RMSE {rec['rerender_rmse']:.4f}; {rec['timings_s']['total_s']:.1f} s"
+        f"re-render RMSE {rec['rerender_rmse']:.4f}"
+        + (f" (left-out photos {rec['validation']['rmse_left_out']:.4f})" if "validation" in rec else "")
+        + f"; {rec['timings_s']['total_s']:.1f} s"
     )
 
 
@@ -255,6 +264,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=150, help="refinement steps per tile (default 150)")
     p.add_argument("--tile", type=int, default=512, help="network tile size in pixels (default 512)")
     p.add_argument("--emissive", action="store_true", help="also fit an emissive map (fluorescent inks)")
+    p.add_argument(
+        "--validate",
+        type=int,
+        default=0,
+        metavar="K",
+        help="leave K photos out, reconstruct, and report their re-rendering error",
+    )
     p.add_argument("--exr", action="store_true", help="also write every map as float EXR (exr/)")
     p.add_argument(
         "--directx-normals",

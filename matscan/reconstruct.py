@@ -59,8 +59,9 @@ class ReconstructConfig:
     tile: int = 512
     overlap: int = 64
     refine_tile: int = 128
-    saturation_warn: float = 0.02
+    saturation_warn: float = 0.05
     emissive: bool = False  # also fit an emissive map (light the sample gives off under any LED)
+    validate: int = 0  # leave this many photos out, reconstruct, and report their re-rendering error
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
 
@@ -478,6 +479,36 @@ def with_special_maps(maps: MapSet, capture: Capture, warnings: list[str]) -> Ma
     return MapSet(**present)
 
 
+def subset_capture(capture: Capture, positions: list[int]) -> Capture:
+    """The same capture with only some of its photos (positions in its image list)."""
+    from dataclasses import replace
+
+    return replace(
+        capture,
+        images=capture.images[positions],
+        saturated=capture.saturated[positions],
+        light_indices=tuple(capture.light_indices[i] for i in positions),
+        lights=capture.lights.select(positions),
+        files=tuple(capture.files[i] for i in positions),
+    )
+
+
+def leave_out_validation(capture: Capture, count: int, cfg: ReconstructConfig, nets: MapNets | None) -> dict:
+    """Self-validation without ground truth: reconstruct without ``count`` photos
+    (spread evenly over the capture) and measure the re-rendering RMSE on them."""
+    n = len(capture.files)
+    if not 1 <= count <= n - 1:
+        raise MatscanError(f"--validate: {count} must be between 1 and {n - 1} (the capture has {n} photos)")
+    left = sorted({round((i + 0.5) * n / count - 0.5) for i in range(count)})
+    kept = [i for i in range(n) if i not in left]
+    res = reconstruct_capture(subset_capture(capture, kept), cfg, nets)
+    return {
+        "left_out": [capture.files[i] for i in left],
+        "rmse_left_out": rerender_error(res.maps, capture, left, res.intensity_scale),
+        "rmse_fitted": rerender_error(res.maps, capture, kept, res.intensity_scale),
+    }
+
+
 def reconstruct(
     capture_path: str | Path,
     out: str | Path,
@@ -494,6 +525,7 @@ def reconstruct(
 
         nets, model_meta = load_model(cfg.model)
         model_name = str(model_path(cfg.model))
+    validation = leave_out_validation(capture, cfg.validate, cfg, nets) if cfg.validate else None
     res = reconstruct_capture(capture, cfg, nets, progress)
     positions = list(range(len(capture.files)))
     error = rerender_error(res.maps, capture, positions, res.intensity_scale)
@@ -516,11 +548,16 @@ def reconstruct(
         "conventions": CONVENTIONS,
         "timings_s": {k: round(v, 3) for k, v in res.timings.items()},
     }
+    if validation is not None:
+        record["validation"] = validation
     with atomic_folder(out, overwrite=overwrite) as tmp:
         write_maps(tmp, res.maps)
         from matscan.export import export_all
 
         record["exports"] = export_all(tmp, res.maps, capture.field_mm, cfg.exr, cfg.directx_normals)
+        from matscan.report.html import write_report
+
+        write_report(tmp / "report.html", capture, res.maps, record, res.intensity_scale)
         record["timings_s"]["total_s"] = round(time.perf_counter() - t_all, 3)
         (tmp / "matscan.json").write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
     return record

@@ -132,3 +132,28 @@ def test_uncalibrated_flash_capture_gets_an_intensity_scale(tmp_path):
         f0 = float(maps.specular.mean())
         expected = 0.4 * f0 / 0.04
         assert abs(res.intensity_scale / expected - 1) < 0.25, (family, res.intensity_scale, expected)
+
+
+def test_leave_out_validation(tmp_path, capsys):
+    _capture(tmp_path, size=24, name="v")
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(tmp_path / "v"),
+                "--out",
+                str(tmp_path / "o"),
+                "--model",
+                "none",
+                "--steps",
+                "40",
+                "--validate",
+                "4",
+            ]
+        )
+        == 0
+    )
+    assert "left-out photos" in capsys.readouterr().out
+    rec = json.loads((tmp_path / "o" / "matscan.json").read_text())
+    val = rec["validation"]
+    assert len(val["left_out"]) == 4 and val["rmse_fitted"] <= val["rmse_left_out"] < 0.1

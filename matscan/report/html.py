@@ -1,0 +1,155 @@
+"""``report.html``: one self-contained page a person opens after a reconstruction.
+
+It shows each input photo beside its re-rendering from the maps under the same
+light, with an error heat map and the per-light RMSE; the maps; the numbers
+(timings, leave-out error, warnings); and a relighting viewer (WebGL, the paper's
+Eq. 1 in a fragment shader, ``viewer.js``) in which you drag a light over the
+material. Images are embedded as PNG data; nothing is fetched from the network.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from matscan.capture import Capture
+from matscan.color import linear_to_srgb
+from matscan.mapset import MapSet
+from matscan.render import render, surface_points
+from matscan.report.sheet import to_display
+
+HERE = Path(__file__).parent
+DISPLAY = 256  # longest side of the images shown per light
+VIEWER = 1024  # longest side of the viewer's textures
+
+
+def _png_uri(display: np.ndarray) -> str:
+    """(H, W, 3) display values in [0, 1] → a PNG data URI."""
+    arr = np.rint(np.clip(display, 0, 1) * 255).astype(np.uint8)[:, :, ::-1]
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
+    assert ok
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+def _shrink(t: Tensor, longest: int) -> Tensor:
+    h, w = t.shape[-2:]
+    if max(h, w) <= longest:
+        return t
+    s = longest / max(h, w)
+    return F.interpolate(t[None], size=(max(1, round(h * s)), max(1, round(w * s))), mode="area")[0]
+
+
+def heat(err: Tensor, top: float) -> np.ndarray:
+    """(H, W) error → (H, W, 3) colours: black, red, yellow, white at ``top`` and above."""
+    x = (err / max(top, 1e-6)).clamp(0, 1).numpy()
+    return np.stack([np.clip(3 * x, 0, 1), np.clip(3 * x - 1, 0, 1), np.clip(3 * x - 2, 0, 1)], axis=-1)
+
+
+def per_light_rows(capture: Capture, maps: MapSet, scale: float) -> tuple[list[dict[str, Any]], float]:
+    """Photo, re-rendering and error of every input, at display size; and the overall RMSE."""
+    pts = surface_points(capture.field_mm, capture.size)
+    rows, total, count = [], 0.0, 0
+    for i, file in enumerate(capture.files):
+        with torch.no_grad():
+            img = render(maps.diffuse, maps.specular, maps.roughness, maps.normal, capture.lights.select([i]), pts)[0]
+        img = img * scale
+        if maps.emissive is not None:
+            img = img + maps.emissive
+        if maps.alpha is not None:
+            img = img * maps.alpha
+        img = img.clamp(0, 1)
+        photo = capture.images[i]
+        ok = ~capture.saturated[i].expand_as(img)
+        diff = (img - photo)[ok]
+        rmse = float(diff.square().mean().sqrt()) if diff.numel() else float("nan")
+        total += float(diff.square().sum())
+        count += diff.numel()
+        err = (linear_to_srgb(img) - linear_to_srgb(photo)).abs().mean(0)
+        rows.append(
+            {
+                "file": file,
+                "light": capture.light_indices[i],
+                "rmse": rmse,
+                "photo": _png_uri(to_display(_shrink(photo, DISPLAY))),
+                "render": _png_uri(to_display(_shrink(img, DISPLAY))),
+                "error": _png_uri(heat(_shrink(err[None], DISPLAY)[0], 0.1)),
+            }
+        )
+    return rows, (total / max(count, 1)) ** 0.5
+
+
+def _viewer_textures(maps: MapSet) -> dict[str, str]:
+    out = {}
+    for name, kind in (("diffuse", "srgb"), ("specular", "srgb"), ("roughness", "grey"), ("normal", "normal")):
+        out[name] = _png_uri(to_display(_shrink(getattr(maps, name), VIEWER), kind))
+    return out
+
+
+def write_report(path: Path, capture: Capture, maps: MapSet, record: dict[str, Any], scale: float = 1.0) -> None:
+    """Write ``report.html`` (see module doc)."""
+    rows, overall = per_light_rows(capture, maps, scale)
+    e = html.escape
+    light_rows = "\n".join(
+        f"<tr><td>{e(r['file'])}</td><td>{'' if r['light'] is None else r['light']}</td>"
+        f"<td><img src='{r['photo']}' alt='photo'></td><td><img src='{r['render']}' alt='re-rendering'></td>"
+        f"<td><img src='{r['error']}' alt='error'></td><td>{r['rmse']:.4f}</td></tr>"
+        for r in rows
+    )
+    kinds = {"diffuse": "srgb", "specular": "srgb", "basecolor": "srgb", "emissive": "srgb", "normal": "normal"}
+    map_cells = []
+    for name, t in maps.present().items():
+        if name == "height":
+            lo, hi = float(t.min()), float(t.max())
+            t = (t - lo) / (hi - lo) if hi > lo else torch.zeros_like(t)
+            label = f"height ({lo:.3f} to {hi:.3f} mm)"
+        else:
+            label = name
+        uri = _png_uri(to_display(_shrink(t, DISPLAY), kinds.get(name, "grey")))
+        map_cells.append(f"<figure><img src='{uri}' alt='{name}'><figcaption>{e(label)}</figcaption></figure>")
+    numbers = {
+        "rig": record.get("rig"),
+        "size (px)": record.get("size_px"),
+        "mm per pixel": [round(v, 4) for v in record.get("mm_per_pixel", [])],
+        "model": record.get("model", {}).get("name"),
+        "refined": record.get("refined"),
+        "re-rendering RMSE (all inputs)": round(overall, 5),
+        "intensity scale": round(scale, 4),
+        "timings (s)": record.get("timings_s"),
+    }
+    if "validation" in record:
+        numbers["leave-out validation"] = record["validation"]
+    numbers_html = "\n".join(f"<tr><th>{e(k)}</th><td>{e(json.dumps(v))}</td></tr>" for k, v in numbers.items())
+    warnings = "".join(f"<li>{e(w)}</li>" for w in record.get("warnings", [])) or "<li>none</li>"
+    cam = (
+        capture.rig.camera.position_mm
+        if not capture.rig.per_image_geometry
+        else tuple(capture.lights.camera[0].tolist())
+    )
+    viewer_cfg = {
+        "field_mm": list(capture.field_mm),
+        "camera_mm": list(cam),
+        "R": capture.rig.reference_distance_mm,
+        "textures": _viewer_textures(maps),
+    }
+    page = (HERE / "template.html").read_text(encoding="utf-8")
+    page = (
+        page.replace("{{TITLE}}", e(f"matscan report: {record.get('capture', '')}"))
+        .replace("{{NUMBERS}}", numbers_html)
+        .replace("{{WARNINGS}}", warnings)
+        .replace("{{MAPS}}", "\n".join(map_cells))
+        .replace("{{LIGHTS}}", light_rows)
+        .replace("{{VIEWER_CONFIG}}", json.dumps(viewer_cfg))
+        .replace("{{VIEWER_JS}}", (HERE / "viewer.js").read_text(encoding="utf-8"))
+    )
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(page, encoding="utf-8")
+    tmp.replace(path)

@@ -1,0 +1,85 @@
+"""report.html in headless Chromium: no console errors, the viewer draws, and moving the light changes it."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from matscan.capture.virtual import CameraModel, simulate
+from matscan.imagefile import read_image
+from matscan.mapset import read_mapset
+from matscan.reconstruct import ReconstructConfig, reconstruct
+from matscan.rig import builtin_rig
+from matscan.samples import sample_maps_path
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+FLAGS = [
+    "--headless=new",
+    "--no-sandbox",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-quic",
+    "--window-size=700,1400",
+    "--virtual-time-budget=8000",
+    "--enable-logging=stderr",
+    "--v=0",
+]
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("report")
+    simulate(
+        read_mapset(sample_maps_path()),
+        builtin_rig("dome24"),
+        tmp / "cap",
+        lights=[0, 4, 8, 12, 16, 20],
+        size=64,
+        camera=CameraModel(read_noise=0.001),
+    )
+    reconstruct(tmp / "cap", tmp / "out", ReconstructConfig(model="none", refine_steps=10))
+    return tmp / "out" / "report.html"
+
+
+def test_report_content(report):
+    text = report.read_text()
+    assert text.count("alt='photo'") == 6 and text.count("alt='re-rendering'") == 6
+    assert "http://" not in text and "https://" not in text  # nothing fetched: works offline
+    assert "u_light" in text  # the viewer's shader is inlined
+
+
+def _chromium(args, tmp_path):
+    proc = subprocess.run(
+        [CHROMIUM, *FLAGS, f"--user-data-dir={tmp_path / 'profile'}", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    return proc
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (make test installs it)")
+def test_viewer_in_headless_chromium(report, tmp_path):
+    dom = {}
+    for name, light in (("left", "-150,0,150"), ("right", "150,0,150")):
+        proc = _chromium(["--dump-dom", f"file://{report}?light={light}"], tmp_path)
+        assert 'data-viewer="ok"' in proc.stdout, proc.stdout[-500:] + proc.stderr[-2000:]
+        assert not re.search(r"Uncaught|CONSOLE\(\d+\).*[Ee]rror", proc.stderr), proc.stderr[-2000:]
+        mean = float(re.search(r'data-mean="([0-9.]+)"', proc.stdout).group(1))
+        std = float(re.search(r'data-std="([0-9.]+)"', proc.stdout).group(1))
+        assert mean > 0.02 and std > 0.01  # the canvas is not blank
+        dom[name] = mean
+        shot = tmp_path / f"{name}.png"
+        _chromium([f"--screenshot={shot}", f"file://{report}?light={light}"], tmp_path)
+        dom[name + "_png"] = read_image(shot).pixels
+    assert dom["left"] != dom["right"]
+    changed = np.abs(dom["left_png"] - dom["right_png"]).max(axis=2) > 0.02
+    assert changed.mean() > 0.01  # the screenshot changes where the viewer is
