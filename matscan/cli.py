@@ -98,6 +98,38 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
     )
 
 
+def cmd_calibrate(args: argparse.Namespace) -> str:
+    import torch
+
+    from matscan.calibrate import colorchecker_linear, colour_matrix, light_scales, sample_patches, write_calibration
+    from matscan.capture import load_capture
+    from matscan.color import srgb_to_linear
+    from matscan.imagefile import read_image
+
+    if not args.grey and not args.chart:
+        raise MatscanError("calibrate: give --grey CAPTURE (grey card under each light) and/or --chart PHOTO")
+    matrix = scales = flats = None
+    parts = []
+    if args.chart:
+        img = read_image(args.chart)
+        photo = torch.from_numpy(img.pixels[:, :, :3]).permute(2, 0, 1).float()
+        if img.kind == "int" and args.chart_encoding == "srgb":
+            photo = srgb_to_linear(photo)
+        corners = None
+        if args.corners:
+            v = _vector(args.corners, 8, "--corners")
+            corners = [(v[0], v[1]), (v[2], v[3]), (v[4], v[5]), (v[6], v[7])]
+        measured = sample_patches(photo, corners)
+        matrix = colour_matrix(measured, colorchecker_linear())
+        residual = float((measured @ matrix.T - colorchecker_linear()).abs().mean())
+        parts.append(f"colour matrix (mean patch error {residual:.4f})")
+    if args.grey:
+        scales, flats = light_scales(load_capture(args.grey), flat_fields=args.flat_fields)
+        parts.append(f"{len(scales)} light scales ({min(scales.values()):.3f} to {max(scales.values()):.3f})")
+    write_calibration(Path(args.out), matrix, scales, flats)
+    return f"calibrate: wrote {args.out}: " + ", ".join(parts)
+
+
 def cmd_render(args: argparse.Namespace) -> str:
     import numpy as np
 
@@ -280,6 +312,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.set_defaults(func=cmd_reconstruct)
+
+    p = sub.add_parser("calibrate", help="write calibration.json from a ColorChecker photo and/or a grey card")
+    p.add_argument("--out", required=True, help="calibration.json to write (put it in the capture folder)")
+    p.add_argument("--grey", default=None, metavar="CAPTURE", help="capture of an 18%% grey card under each light")
+    p.add_argument("--flat-fields", dest="flat_fields", action="store_true", help="also write per-light flat fields")
+    p.add_argument("--chart", default=None, metavar="PHOTO", help="photo of a ColorChecker Classic (24 patches)")
+    p.add_argument("--chart-encoding", dest="chart_encoding", choices=["srgb", "linear"], default="srgb")
+    p.add_argument(
+        "--corners",
+        default=None,
+        metavar="X,Y,…",
+        help="chart corners TL,TR,BR,BL as 8 numbers in pixels (default: the chart fills the photo)",
+    )
+    p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("render", help="render a map set under one point light")
     p.add_argument("maps", metavar="MAPS", help="map set folder, or @sample")

@@ -518,7 +518,9 @@ def reconstruct(
 ) -> dict[str, Any]:
     """``matscan reconstruct``: read a capture, write maps and ``matscan.json``; return the record."""
     t_all = time.perf_counter()
-    capture = load_capture(capture_path)
+    from matscan.calibrate import apply_calibration
+
+    capture = apply_calibration(load_capture(capture_path))
     nets, model_meta, model_name = None, {}, "none"
     if cfg.model != "none":
         from matscan.weights import load_model, model_path

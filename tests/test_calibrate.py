@@ -1,0 +1,99 @@
+"""Calibration recovers a known colour matrix and known per-light scales from simulated photos."""
+
+from __future__ import annotations
+
+import json
+
+import torch
+
+from matscan.calibrate import (
+    apply_calibration,
+    colorchecker_linear,
+    colour_matrix,
+    light_scales,
+    sample_patches,
+    write_calibration,
+)
+from matscan.capture import load_capture, write_capture
+from matscan.capture.virtual import CameraModel, simulate_images
+from matscan.cli import main
+from matscan.imagefile import write_image
+from matscan.mapset import MapSet
+from matscan.rig import LightSet, builtin_rig
+
+
+def _chart(camera: torch.Tensor, size=(120, 180), margin=(10, 20)) -> torch.Tensor:
+    """A photo with the chart (4 × 6 patches) inside a margin; patches as the camera sees them."""
+    ref = colorchecker_linear() @ torch.linalg.inv(camera).T  # camera RGB = A⁻¹ · reference
+    h, w = size
+    photo = torch.full((3, h + 2 * margin[0], w + 2 * margin[1]), 0.05)
+    for i in range(24):
+        r, c = divmod(i, 6)
+        y0, x0 = margin[0] + r * h // 4, margin[1] + c * w // 6
+        photo[:, y0 + 2 : y0 + h // 4 - 2, x0 + 2 : x0 + w // 6 - 2] = ref[i].view(3, 1, 1)
+    return photo
+
+
+def test_colour_matrix_is_recovered(tmp_path):
+    a = torch.tensor([[1.1, 0.05, -0.02], [0.03, 0.92, 0.04], [-0.01, 0.08, 1.2]])
+    photo = _chart(a)
+    corners = [(20, 10), (200, 10), (200, 130), (20, 130)]
+    m = colour_matrix(sample_patches(photo, corners), colorchecker_linear())
+    torch.testing.assert_close(m, a, atol=1e-4, rtol=0)
+    write_image(tmp_path / "chart.exr", photo.permute(1, 2, 0).numpy(), bits=32)
+    assert (
+        main(
+            [
+                "calibrate",
+                "--chart",
+                str(tmp_path / "chart.exr"),
+                "--chart-encoding",
+                "linear",
+                "--corners",
+                "20,10,200,10,200,130,20,130",
+                "--out",
+                str(tmp_path / "calibration.json"),
+            ]
+        )
+        == 0
+    )
+    doc = json.loads((tmp_path / "calibration.json").read_text())
+    torch.testing.assert_close(torch.tensor(doc["colour_matrix"]), a, atol=1e-3, rtol=0)
+
+
+def _grey_capture(tmp_path, scales, indices):
+    size = 32
+    n = torch.zeros(3, size, size)
+    n[2] = 1
+    card = MapSet(torch.full((3, size, size), 0.18), torch.zeros(3, size, size), torch.ones(1, size, size), n)
+    rig = builtin_rig("dome24")
+    ls = rig.light_set(indices)
+    ls = LightSet(
+        ls.position,
+        ls.intensity * torch.tensor(scales).view(-1, 1),
+        ls.axis,
+        ls.exponent,
+        ls.camera,
+        ls.reference_distance_mm,
+    )
+    photos = simulate_images(card, ls, rig.field_mm, CameraModel(read_noise=0.001, encoding="linear", bits=16))
+    write_capture(tmp_path / "grey", photos, rig, light_indices=indices, encoding="linear", bits=16)
+    return load_capture(tmp_path / "grey")
+
+
+def test_light_scales_are_recovered_and_applied(tmp_path):
+    indices = [0, 5, 12, 19, 23]
+    truth = [1.05, 0.9, 1.2, 0.97, 0.8]
+    grey = _grey_capture(tmp_path, truth, indices)
+    scales, flats = light_scales(grey, flat_fields=True)
+    for k, s in zip(indices, truth, strict=True):
+        assert abs(scales[str(k)] / s - 1) < 0.005
+    assert all(abs(float(f.mean()) - 1) < 1e-5 for f in flats.values())
+    write_calibration(tmp_path / "grey" / "calibration.json", None, scales, flats)
+    doc = json.loads((tmp_path / "grey" / "capture.json").read_text())
+    doc["calibration"] = "calibration.json"
+    (tmp_path / "grey" / "capture.json").write_text(json.dumps(doc))
+    corrected = apply_calibration(load_capture(tmp_path / "grey"))
+    # after correction every light images the card as an intensity-1 light would
+    reference = _grey_capture(tmp_path / "ref", [1.0] * 5, indices)
+    assert (corrected.images - reference.images).abs().mean() < 0.002
