@@ -196,3 +196,22 @@ def test_end_to_end_known_maps_and_novel_lights(tmp_path):
     assert rmse(maps.roughness, truth.roughness) < 0.06
     assert novel(maps) < 0.05
     assert novel(maps) < 0.6 * novel(start)
+
+
+def test_emissive_fit_on_a_fluorescent_print(tmp_path):
+    # emission adds the same light to every photo; fitting it recovers it and frees the albedo
+    from matscan.materials.procedural import generate
+
+    truth = generate("fluorescent_print", 32, 0, mm_per_px=120 / 32)
+    simulate(truth, builtin_rig("dome24"), tmp_path / "fluo", camera=CameraModel(read_noise=0.001, encoding="linear",
+                                                                                     bits=16))
+    cap = load_capture(tmp_path / "fluo")
+    without = reconstruct_capture(cap, ReconstructConfig(refine="on"), None).maps
+    with_e = reconstruct_capture(cap, ReconstructConfig(refine="on", emissive=True), None).maps
+
+    def rmse(a, b):
+        return float((a - b).square().mean().sqrt())
+
+    assert with_e.emissive is not None and without.emissive is None
+    assert rmse(with_e.emissive, truth.emissive) < 0.5 * rmse(torch.zeros_like(truth.emissive), truth.emissive)
+    assert rmse(with_e.diffuse, truth.diffuse) < 0.7 * rmse(without.diffuse, truth.diffuse)
