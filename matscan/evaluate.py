@@ -17,23 +17,11 @@ from torch import Tensor
 
 from matscan.data import fixed_validation_set
 from matscan.nets import MAPS, MapNets, encode_inputs
-from matscan.render import surface_points
+from matscan.render import flat_irradiance, surface_points
 from matscan.rig import Rig, resolve_rig
 
 BASELINE_ROUGHNESS = 0.5
 BASELINE_SPECULAR = 0.04
-
-
-def flat_irradiance(rig: Rig, indices: Sequence[int], points: Tensor) -> Tensor:
-    """I_k (R/d)² max(a_k·(−l), 0)^m_k max(n·l, 0) for a flat surface, (L, 3, H, W), at points (H, W, 3)."""
-    ls = rig.light_set(indices)
-    lv = ls.position[:, None, None, :] - points[None]  # (L, H, W, 3)
-    d2 = (lv * lv).sum(-1)
-    l_dir = lv / d2.sqrt()[..., None]
-    lobe = (-(l_dir * ls.axis[:, None, None, :]).sum(-1)).clamp_min(0) ** ls.exponent[:, None, None]
-    cos = l_dir[..., 2].clamp_min(0)
-    e = (rig.reference_distance_mm**2 / d2) * lobe * cos  # (L, H, W)
-    return ls.intensity[:, :, None, None] * e[:, None]
 
 
 def baseline_maps(sample: dict[str, Tensor], rig: Rig) -> dict[str, Tensor]:
@@ -41,7 +29,7 @@ def baseline_maps(sample: dict[str, Tensor], rig: Rig) -> dict[str, Tensor]:
     present = sample["present"].nonzero().flatten().tolist()
     h, w = sample["inputs"].shape[-2:]
     pts = surface_points(rig.field_mm, (h, w), tuple(sample["offset"].tolist()), tuple(sample["full_size"].tolist()))
-    e = flat_irradiance(rig, present, pts)
+    e = flat_irradiance(rig.light_set(present), pts)
     rho = (sample["inputs"][present] / e.clamp_min(1e-3)).median(dim=0).values.clamp(0, 1)
     normal = torch.zeros(3, h, w)
     normal[2] = 1

@@ -37,10 +37,9 @@ from matscan import __version__
 from matscan.atomic import atomic_folder
 from matscan.capture import Capture, load_capture
 from matscan.errors import MatscanError
-from matscan.evaluate import flat_irradiance
 from matscan.mapset import CONVENTIONS, MapSet, normalize_normals, write_maps
 from matscan.nets import MapNets, encode_inputs
-from matscan.render import render, surface_points
+from matscan.render import flat_irradiance, render, surface_points
 from matscan.rig import LightSet
 
 LOG_EPS = 0.01
@@ -196,24 +195,11 @@ def flat_start(capture: Capture) -> MapSet:
     """Maps to start refinement from without networks: albedo = median of photo ÷ flat
     irradiance, flat normal, roughness 0.5, specular 0.04."""
     h, w = capture.size
-    pts = surface_points(capture.field_mm, (h, w))
-    if capture.rig.per_image_geometry:
-        e = _flat_irradiance_lights(capture.lights, pts)
-    else:
-        e = flat_irradiance(capture.rig, list(capture.light_indices), pts)
+    e = flat_irradiance(capture.lights, surface_points(capture.field_mm, (h, w)))
     rho = (capture.images / e.clamp_min(1e-3)).median(dim=0).values.clamp(0, 1)
     normal = torch.zeros(3, h, w)
     normal[2] = 1
     return MapSet(rho, torch.full((3, h, w), 0.04), torch.full((1, h, w), 0.5), normal)
-
-
-def _flat_irradiance_lights(lights: LightSet, points: Tensor) -> Tensor:
-    lv = lights.position[:, None, None, :] - points[None]
-    d2 = (lv * lv).sum(-1)
-    l_dir = lv / d2.sqrt()[..., None]
-    lobe = (-(l_dir * lights.axis[:, None, None, :]).sum(-1)).clamp_min(0) ** lights.exponent[:, None, None]
-    e = (lights.reference_distance_mm**2 / d2) * lobe * l_dir[..., 2].clamp_min(0)
-    return lights.intensity[:, :, None, None] * e[:, None]
 
 
 # --- refinement -----------------------------------------------------------------------------
@@ -342,7 +328,7 @@ def _fit_scale(
     normal = torch.zeros(3, hh, ww)
     normal[2] = 1
     f0 = torch.full((3, hh, ww), 0.04)
-    irr = _flat_irradiance_lights(lights, points)
+    irr = flat_irradiance(lights, points)
     log_k = torch.zeros((), requires_grad=True)
     rough = torch.zeros((), requires_grad=True)  # logit of roughness
     opt = torch.optim.Adam([log_k, rough], lr=0.05)

@@ -203,8 +203,12 @@ def test_emissive_fit_on_a_fluorescent_print(tmp_path):
     from matscan.materials.procedural import generate
 
     truth = generate("fluorescent_print", 32, 0, mm_per_px=120 / 32)
-    simulate(truth, builtin_rig("dome24"), tmp_path / "fluo", camera=CameraModel(read_noise=0.001, encoding="linear",
-                                                                                     bits=16))
+    simulate(
+        truth,
+        builtin_rig("dome24"),
+        tmp_path / "fluo",
+        camera=CameraModel(read_noise=0.001, encoding="linear", bits=16),
+    )
     cap = load_capture(tmp_path / "fluo")
     without = reconstruct_capture(cap, ReconstructConfig(refine="on"), None).maps
     with_e = reconstruct_capture(cap, ReconstructConfig(refine="on", emissive=True), None).maps

@@ -68,15 +68,13 @@ def test_white_lambertian_head_on_is_one():
         assert torch.all(img == 1.0)
     # with the dome's m = 1 LED aimed straight down it is 1.0 too (a·(−l) = 1)
     lights = LightSet.from_lights([Light((0.0, 0.0, 225.0))], (0.0, 0.0, 225.0), 225.0)
-    img = render(
-        torch.ones(3, 1, 1),
-        torch.zeros(3, 1, 1),
-        torch.ones(1, 1, 1),
-        torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1),
-        lights,
-        torch.zeros(1, 1, 3),
-    )
-    torch.testing.assert_close(img, torch.ones(1, 3, 1, 1))
+    torch.testing.assert_close(_white_pixel_at_origin(lights), torch.ones(1, 3, 1, 1))
+
+
+def _white_pixel_at_origin(lights: LightSet) -> torch.Tensor:
+    """A white Lambertian (ρ = 1, F0 = 0) pixel at the origin with an upward normal, rendered."""
+    up = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1)
+    return render(torch.ones(3, 1, 1), torch.zeros(3, 1, 1), torch.ones(1, 1, 1), up, lights, torch.zeros(1, 1, 3))
 
 
 def test_matches_scalar_reference():
@@ -188,15 +186,7 @@ def test_chunking_and_batching_agree():
 def test_flash_colocated_light():
     # flash beside the lens, straight above at distance R, m = 0: a white Lambertian centre pixel is 1.0
     lights = LightSet.from_lights([Light((0.0, 0.0, 300.0), exponent=0.0)], [(0.0, 0.0, 300.0)], 300.0)
-    img = render(
-        torch.ones(3, 1, 1),
-        torch.zeros(3, 1, 1),
-        torch.ones(1, 1, 1),
-        torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1),
-        lights,
-        torch.zeros(1, 1, 3),
-    )
-    torch.testing.assert_close(img, torch.ones(1, 3, 1, 1))
+    torch.testing.assert_close(_white_pixel_at_origin(lights), torch.ones(1, 3, 1, 1))
 
 
 def test_bad_shapes_are_reported():
@@ -221,3 +211,20 @@ def test_compiled_kernel_agrees_with_eager():
     eager = render(*args, compile=False, chunk=24 * 300)
     fused = render(*args, compile=True, chunk=24 * 300)  # several chunks, the last one padded
     torch.testing.assert_close(fused, eager, rtol=1e-5, atol=1e-6)
+
+
+def test_flat_irradiance_closed_form():
+    from matscan.render import flat_irradiance
+
+    # isotropic light at (0, 0, R): E(x) = (R/d)² · cos θ = R³ / (R² + x²)^(3/2)
+    R = 225.0
+    lights = LightSet.points([[0.0, 0.0, R]], [0.0, 0.0, R], R)
+    pts = torch.tensor([[[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, -80.0, 0.0]]])
+    e = flat_irradiance(lights, pts)[0, 0, 0]
+    expected = torch.tensor([R**3 / (R**2 + x**2) ** 1.5 for x in (0.0, 50.0, 80.0)])
+    torch.testing.assert_close(e, expected)
+    # and it is what the renderer gives a white Lambertian surface
+    ones = torch.ones(3, 1, 3)
+    up = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 1, 3)
+    img = render(ones, torch.zeros(3, 1, 3), torch.ones(1, 1, 3), up, lights, pts)
+    torch.testing.assert_close(img[0, 0, 0], expected)
