@@ -20,7 +20,8 @@ import time
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from matscan.nets import MapNets, encode_inputs, preset
+from matscan.nets import MapNets, network_input, preset
+from matscan.rig import builtin_rig
 
 SIZE = 512
 
@@ -39,7 +40,7 @@ def case(name: str) -> dict:
     torch.set_num_threads(2)
     nets = MapNets(24, preset(name)).eval()
     photos = torch.rand(1, 24, 3, SIZE, SIZE)
-    x = encode_inputs(photos, torch.ones(1, 24))
+    x = network_input(photos, torch.ones(1, 24), None, None, builtin_rig("dome24"))
     with torch.no_grad():
         with FlopCounterMode(display=False) as counter:
             nets(x)

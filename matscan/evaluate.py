@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from matscan.data import fixed_validation_set
-from matscan.nets import MAPS, MapNets, encode_inputs
+from matscan.nets import MAPS, MapNets, network_input
 from matscan.render import flat_irradiance, surface_points
 from matscan.rig import Rig, resolve_rig
 
@@ -92,7 +92,7 @@ def subset_table(
             truth = {m: torch.stack([s[m] for s in chunk]) for m in MAPS}
             if nets is not None:
                 b = {k: torch.stack([s[k] for s in chunk]) for k in ("inputs", "present", "offset", "full_size")}
-                ours.add(nets(encode_inputs(b["inputs"], b["present"], b["offset"], b["full_size"])), truth)
+                ours.add(nets(network_input(b["inputs"], b["present"], b["offset"], b["full_size"], rig)), truth)
             for s in chunk:
                 base.add(baseline_maps(s, rig), {m: s[m] for m in MAPS})
         table[name] = {"baseline": base.result()}

@@ -17,11 +17,13 @@ independent networks), ``one_encoder`` (one shared encoder, four decoders),
 ``global_track`` (Deschaintre et al. 2018's global feature track instead of the
 global skip), ``no_global_skip``.
 
-Inputs (:func:`encode_inputs`): for a rig of L lights, L RGB slots (log-encoded
-linear radiance, 0 for an absent light), L presence planes (1 present, 0 absent)
-and two planes of the pixel's position in the sample field (x, y in [−1, 1]),
-so a network knows which photos it has and where in the dome a crop lies:
-4L + 2 channels.
+Inputs (:func:`network_input`): for a rig of L lights, L RGB slots (each photo
+divided by the irradiance a flat surface receives there from its light, then
+log-encoded; 0 for an absent light), L presence planes (1 present, 0 absent) and
+two planes of the pixel's position in the sample field (x, y in [−1, 1]), so a
+network knows which photos it has and where in the dome a crop lies: 4L + 2
+channels. (The paper feeds the 3N photo channels as they are; dividing out the
+rig's known falloff and cosines is ours, to make training practical on a CPU.)
 
 Sizes that are not a multiple of 2^depth are padded (reflect) up to one and the
 outputs cropped back (:meth:`MapNets.forward`).
@@ -37,12 +39,16 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from matscan.errors import MatscanError
+from matscan.render import flat_irradiance, surface_points
+from matscan.rig import Rig
 
 MAPS = ("diffuse", "specular", "roughness", "normal")
 OUT_CHANNELS = {"diffuse": 3, "specular": 3, "roughness": 1, "normal": 3}
 VARIANTS = ("four", "one_encoder", "global_track", "no_global_skip")
 #: Scale of the log encoding of radiance: log1p(x · LOG_SCALE) / log1p(LOG_SCALE).
 LOG_SCALE = 100.0
+#: Smallest irradiance a photo is divided by (:func:`network_input`).
+IRRADIANCE_FLOOR = 0.05
 
 
 @dataclass(frozen=True)
@@ -101,6 +107,37 @@ def encode_inputs(
     y = 1 - (rows / full_size[:, 0].view(b, 1, 1).to(photos.dtype)) * 2
     coords = torch.stack([x.expand(b, h, w), y.expand(b, h, w)], dim=1)
     return torch.cat([logs.reshape(b, n * c, h, w), planes.to(photos.dtype), coords], dim=1)
+
+
+def network_input(
+    photos: Tensor,
+    present: Tensor,
+    offset: Tensor | None,
+    full_size: Tensor | None,
+    rig: Rig,
+    field_mm: tuple[float, float] | None = None,
+) -> Tensor:
+    """:func:`encode_inputs` of photos divided by the irradiance a flat surface gets
+    from each light at each pixel (:func:`matscan.render.flat_irradiance`).
+
+    A Lambertian pixel of albedo ρ then reads ρ under every light, wherever it lies
+    in the dome: the networks need not learn the rig's falloff and cosines, and
+    highlights stand out as departures from that.
+    """
+    b, n, _, h, w = photos.shape
+    if offset is None:
+        offset = torch.zeros(b, 2, dtype=torch.long)
+    if full_size is None:
+        full_size = torch.tensor([[h, w]] * b)
+    lights = rig.light_set()
+    field = field_mm if field_mm is not None else rig.field_mm
+    irr = torch.stack(
+        [
+            flat_irradiance(lights, surface_points(field, (h, w), (int(o[0]), int(o[1])), (int(f[0]), int(f[1]))))
+            for o, f in zip(offset, full_size, strict=True)
+        ]
+    )
+    return encode_inputs(photos / irr.clamp_min(IRRADIANCE_FLOOR), present, offset, full_size)
 
 
 def input_channels(n_lights: int) -> int:

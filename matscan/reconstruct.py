@@ -38,7 +38,7 @@ from matscan.atomic import atomic_folder
 from matscan.capture import Capture, load_capture
 from matscan.errors import MatscanError
 from matscan.mapset import CONVENTIONS, MapSet, normalize_normals, write_maps
-from matscan.nets import MapNets, encode_inputs
+from matscan.nets import MapNets, network_input
 from matscan.render import flat_irradiance, render, surface_points
 from matscan.rig import LightSet
 
@@ -146,7 +146,14 @@ def predict_maps(nets: MapNets, capture: Capture, tile: int = 512, overlap: int 
     full = torch.tensor([[h, w]])
 
     def encoded(r0: int, c0: int, th: int, tw: int) -> Tensor:
-        return encode_inputs(photos[..., r0 : r0 + th, c0 : c0 + tw], present, torch.tensor([[r0, c0]]), full)
+        return network_input(
+            photos[..., r0 : r0 + th, c0 : c0 + tw],
+            present,
+            torch.tensor([[r0, c0]]),
+            full,
+            capture.rig,
+            capture.field_mm,
+        )
 
     rows, cols = _starts(h, tile, overlap), _starts(w, tile, overlap)
     pooled = None

@@ -37,9 +37,9 @@ from torch.utils.data import DataLoader, Sampler
 from matscan.data import DataConfig, SvbrdfDataset, fixed_validation_set
 from matscan.errors import MatscanError, input_error
 from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights
-from matscan.nets import MAPS, MapNets, encode_inputs, preset
+from matscan.nets import MAPS, MapNets, network_input, preset
 from matscan.render import surface_points
-from matscan.rig import LightSet, resolve_rig
+from matscan.rig import LightSet, Rig, resolve_rig
 
 CHECKPOINT = "checkpoint.safetensors"
 
@@ -233,7 +233,7 @@ def batch_to(samples: list[dict[str, Tensor]]) -> dict[str, Tensor]:
 
 
 @torch.no_grad()
-def validate(nets: MapNets, samples: list[dict[str, Tensor]], batch: int = 8) -> dict[str, float]:
+def validate(nets: MapNets, samples: list[dict[str, Tensor]], rig: Rig, batch: int = 8) -> dict[str, float]:
     """RMSE per map (normals: RMSE of the vectors, and mean angular error in degrees)."""
     was = nets.training
     nets.eval()
@@ -242,7 +242,7 @@ def validate(nets: MapNets, samples: list[dict[str, Tensor]], batch: int = 8) ->
     angle, pixels = 0.0, 0
     for i in range(0, len(samples), batch):
         b = batch_to(samples[i : i + batch])
-        out = nets(encode_inputs(b["inputs"], b["present"], b["offset"], b["full_size"]))
+        out = nets(network_input(b["inputs"], b["present"], b["offset"], b["full_size"], rig))
         for m in nets.maps:
             sq[m] += float(((out[m] - b[m]) ** 2).sum())
             count[m] += b[m].numel()
@@ -351,7 +351,7 @@ def train(
     try:
         while step < end and not stop["now"] and time.monotonic() < deadline:
             b = next(batches)
-            x = encode_inputs(b["inputs"], b["present"], b["offset"], b["full_size"])
+            x = network_input(b["inputs"], b["present"], b["offset"], b["full_size"], rig)
             out = model(x)
             truth = {m: b[m] for m in MAPS}
             lights = points = None
@@ -390,7 +390,7 @@ def train(
                     )
                     bar.set_postfix({m: f"{terms[m]:.3f}" for m in cfg.maps})
                 if cfg.val_every and step % cfg.val_every == 0:
-                    last_val = validate(nets, val_samples)
+                    last_val = validate(nets, val_samples, rig)
                     _append_csv(val_path, {"step": step, **{k: round(v, 6) for k, v in last_val.items()}})
                 if time.monotonic() - last_ckpt > cfg.checkpoint_minutes * 60:
                     save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start)

@@ -2,11 +2,24 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
 from matscan.errors import MatscanError
-from matscan.nets import MAPS, PRESETS, VARIANTS, MapNets, NetConfig, encode_inputs, input_channels, preset
+from matscan.nets import (
+    LOG_SCALE,
+    MAPS,
+    PRESETS,
+    VARIANTS,
+    MapNets,
+    NetConfig,
+    encode_inputs,
+    input_channels,
+    network_input,
+    preset,
+)
 
 TINY = PRESETS["tiny"]
 
@@ -105,6 +118,21 @@ def test_encode_inputs_channels():
     # field coordinates of a crop at columns 4..7 of 8: x from 1/8 to 7/8, top row y = 1 − 1/8
     torch.testing.assert_close(x[0, 96, 0], torch.tensor([0.125, 0.375, 0.625, 0.875]))
     assert float(x[0, 97, 0, 0]) == pytest.approx(0.875)
+
+
+def test_network_input_divides_out_flat_irradiance():
+    # a white Lambertian photographed under each light reads the same, 1, in every slot and pixel
+    from matscan.render import render, surface_points
+    from matscan.rig import builtin_rig
+
+    rig = builtin_rig("dome24")
+    offset, full = torch.tensor([[10, 30]]), torch.tensor([[64, 64]])
+    pts = surface_points(rig.field_mm, (8, 8), (10, 30), (64, 64))
+    up = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 8, 8)
+    photos = render(torch.full((3, 8, 8), 0.5), torch.zeros(3, 8, 8), torch.ones(1, 8, 8), up, rig.light_set(), pts)
+    x = network_input(photos[None], torch.ones(1, 24), offset, full, rig)
+    expected = math.log1p(0.5 * LOG_SCALE) / math.log1p(LOG_SCALE)
+    torch.testing.assert_close(x[0, :72], torch.full((72, 8, 8), expected), atol=1e-4, rtol=0)
 
 
 def test_bad_names():
