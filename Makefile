@@ -17,9 +17,9 @@ $(STAMP): pyproject.toml Makefile
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/matscan simulate @sample --out $(DEMO)/capture --overwrite
-	$(BIN)/matscan sheet $(DEMO)/capture --maps @sample --out $(DEMO)/contact_sheet.png
-	@echo "demo: open $(DEMO)/contact_sheet.png"
+	$(BIN)/matscan reconstruct @sample --out $(DEMO)/reconstruction --overwrite --validate 4
+	$(BIN)/matscan sheet @sample --maps $(DEMO)/reconstruction --out $(DEMO)/contact_sheet.png
+	@echo "demo: open $(DEMO)/reconstruction/report.html and $(DEMO)/contact_sheet.png"
 
 test: $(STAMP)
 	@command -v chromium >/dev/null || command -v chromium-browser >/dev/null || \

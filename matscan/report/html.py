@@ -32,12 +32,14 @@ DISPLAY = 256  # longest side of the images shown per light
 VIEWER = 1024  # longest side of the viewer's textures
 
 
-def _png_uri(display: np.ndarray) -> str:
-    """(H, W, 3) display values in [0, 1] → a PNG data URI."""
+def _png_uri(display: np.ndarray, kind: str = "png") -> str:
+    """(H, W, 3) display values in [0, 1] → a PNG (or, for photos, JPEG) data URI."""
     arr = np.rint(np.clip(display, 0, 1) * 255).astype(np.uint8)[:, :, ::-1]
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
+    ext, params = (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 92]) if kind == "jpeg" else (".png", [])
+    ok, buf = cv2.imencode(ext, np.ascontiguousarray(arr), params)
     assert ok
-    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
+    mime = "image/jpeg" if kind == "jpeg" else "image/png"
+    return f"data:{mime};base64," + base64.b64encode(buf.tobytes()).decode("ascii")
 
 
 def _shrink(t: Tensor, longest: int) -> Tensor:
@@ -79,8 +81,8 @@ def per_light_rows(capture: Capture, maps: MapSet, scale: float) -> tuple[list[d
                 "file": file,
                 "light": capture.light_indices[i],
                 "rmse": rmse,
-                "photo": _png_uri(to_display(_shrink(photo, DISPLAY))),
-                "render": _png_uri(to_display(_shrink(img, DISPLAY))),
+                "photo": _png_uri(to_display(_shrink(photo, DISPLAY)), "jpeg"),
+                "render": _png_uri(to_display(_shrink(img, DISPLAY)), "jpeg"),
                 "error": _png_uri(heat(_shrink(err[None], DISPLAY)[0], 0.1)),
             }
         )
