@@ -130,6 +130,38 @@ def cmd_calibrate(args: argparse.Namespace) -> str:
     return f"calibrate: wrote {args.out}: " + ", ".join(parts)
 
 
+def cmd_evaluate(args: argparse.Namespace) -> str:
+    from matscan.evaluate import evaluate_to_folder
+    from matscan.materials.library import read_any
+    from matscan.materials.photos import photo_material
+    from matscan.materials.procedural import random_material
+
+    materials = []
+    for spec in args.mapsets:
+        if spec.startswith("procedural:"):
+            try:
+                count = int(spec.split(":", 1)[1])
+            except ValueError:
+                raise MatscanError(f"{spec}: write procedural:N with N a number of materials") from None
+            for i in range(count):  # seeds above 2^41: never drawn in training (seeds below 2^40)
+                family, maps = random_material(args.size, 2**41 + i)
+                materials.append((f"procedural-{i:03d}-{family}", maps))
+        elif spec == "photos":
+            materials += [(f"photo-{n}", photo_material(n, args.size)) for n in ("brick", "grass", "gravel")]
+        else:
+            from matscan.capture.virtual import resize_maps
+
+            maps = read_any(_maps_arg(spec))
+            materials.append((Path(spec).name, resize_maps(maps, args.size) if maps.size[0] != args.size else maps))
+    lights = [s.strip() for s in args.lights.split(",")]
+    methods = [m.strip() for m in args.methods.split(",")]
+    encodings = [e.strip() for e in args.encodings.split(",")]
+    res = evaluate_to_folder(
+        materials, Path(args.out), lights, methods, encodings, args.steps, args.overwrite, progress=True
+    )
+    return f"evaluate: {res['rows']} reconstructions scored into {args.out}/results.md in {res['seconds']:.0f} s"
+
+
 def cmd_render(args: argparse.Namespace) -> str:
     import numpy as np
 
@@ -326,6 +358,26 @@ def build_parser() -> argparse.ArgumentParser:
         help="chart corners TL,TR,BR,BL as 8 numbers in pixels (default: the chart fills the photo)",
     )
     p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("evaluate", help="simulate, reconstruct and score map sets (the accuracy study)")
+    p.add_argument(
+        "mapsets",
+        nargs="+",
+        metavar="MAPSETS",
+        help="map set folders, procedural:N (unseen procedural materials), photos (texture photographs)",
+    )
+    p.add_argument("--out", required=True, help="folder for results.json, results.md and plots")
+    p.add_argument("--lights", default="1,2,3,6,10,16,24", help="light subsets (default the paper's Table 4)")
+    p.add_argument(
+        "--methods",
+        default="nets,nets+refine,fit",
+        help="nets, nets+refine, fit, or nets:FILE / nets+refine:FILE for other weights",
+    )
+    p.add_argument("--encodings", default="srgb8,linear16", help="capture encodings: srgb8, linear16")
+    p.add_argument("--size", type=int, default=128, help="material size in pixels (default 128)")
+    p.add_argument("--steps", type=int, default=150, help="refinement steps (default 150)")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("render", help="render a map set under one point light")
     p.add_argument("maps", metavar="MAPS", help="map set folder, or @sample")

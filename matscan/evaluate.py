@@ -9,16 +9,24 @@ over the photos so highlights drop out; a flat normal; roughness 0.5; specular 0
 
 from __future__ import annotations
 
+import json
 import math
+import time
+import zlib
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from matscan.color import linear_to_srgb
 from matscan.data import fixed_validation_set
+from matscan.errors import MatscanError
+from matscan.mapset import MapSet
 from matscan.nets import MAPS, MapNets, network_input
-from matscan.render import flat_irradiance, surface_points
-from matscan.rig import Rig, resolve_rig
+from matscan.render import flat_irradiance, render, surface_points
+from matscan.rig import LightSet, Rig, resolve_rig
 
 BASELINE_ROUGHNESS = 0.5
 BASELINE_SPECULAR = 0.04
@@ -99,3 +107,253 @@ def subset_table(
         if nets is not None:
             table[name]["nets"] = ours.result()
     return table
+
+
+# --- the study: matscan evaluate -------------------------------------------------------------
+
+#: Methods compared on the same captures. "nets": the networks alone; "nets+refine": the
+#: networks then refinement (what `matscan reconstruct` does); "fit": per-pixel fitting
+#: alone (same renderer and optimiser, from the flat start). Any other weights file is
+#: given as "nets:PATH" (or "nets+refine:PATH"): ablation variants.
+METHODS = ("nets", "nets+refine", "fit")
+ENCODINGS = {"srgb8": ("srgb", 8), "linear16": ("linear", 16)}
+
+
+def map_scores(pred: MapSet, truth: MapSet) -> dict[str, float]:
+    """Per-map RMSE, mean normal angle (degrees) and SSIM of diffuse, specular, roughness."""
+    from matscan.losses import ssim
+
+    out = {}
+    for m in MAPS:
+        out[f"rmse_{m}"] = float((getattr(pred, m) - getattr(truth, m)).square().mean().sqrt())
+    cos = (pred.normal * truth.normal).sum(0).clamp(-1, 1)
+    out["normal_degrees"] = float(torch.rad2deg(torch.acos(cos)).mean())
+    for m in ("diffuse", "specular", "roughness"):
+        a, b = getattr(pred, m).clamp(0, 1)[None], getattr(truth, m).clamp(0, 1)[None]
+        out[f"ssim_{m}"] = float(ssim(a, b)) if min(a.shape[-2:]) >= 11 else float("nan")
+    return out
+
+
+def rendering_scores(
+    pred: MapSet, truth: MapSet, lights: LightSet, field_mm, prefix: str, flip: bool = True
+) -> dict[str, float]:
+    """RMSE (linear, clipped to [0, 1] like a photo) between renderings of the predicted
+    and true maps under ``lights``; and mean LDR FLIP of the sRGB images where the
+    flip-evaluator package is installed."""
+    pts = surface_points(field_mm, pred.size)
+    with torch.no_grad():
+        a = render(pred.diffuse, pred.specular, pred.roughness, pred.normal, lights, pts).clamp(0, 1)
+        b = render(truth.diffuse, truth.specular, truth.roughness, truth.normal, lights, pts).clamp(0, 1)
+    out = {f"{prefix}_rmse": float((a - b).square().mean().sqrt())}
+    if flip:
+        try:
+            import flip_evaluator
+        except ImportError:
+            return out
+        values = []
+        for x, y in zip(linear_to_srgb(a), linear_to_srgb(b), strict=True):
+            _, mean, _ = flip_evaluator.evaluate(
+                y.permute(1, 2, 0).numpy().astype("float32"), x.permute(1, 2, 0).numpy().astype("float32"), "LDR"
+            )
+            values.append(float(mean))
+        out[f"{prefix}_flip"] = sum(values) / len(values)
+    return out
+
+
+def evaluation_lights(rig: Rig, count: int = 16, seed: int = 12345) -> LightSet:
+    """The fixed novel lights of the study (:func:`matscan.losses.novel_lights`)."""
+    from matscan.losses import novel_lights
+
+    nl = novel_lights(1, count, rig.reference_distance_mm, rig.camera.position_mm, torch.Generator().manual_seed(seed))
+    return LightSet(nl.position[0], nl.intensity[0], nl.axis[0], nl.exponent[0], nl.camera[0], nl.reference_distance_mm)
+
+
+def _method_nets(method: str, cache: dict) -> tuple[MapNets | None, str]:
+    kind, _, path = method.partition(":")
+    refine = "on" if kind == "nets+refine" or kind == "fit" else "off"
+    if kind == "fit":
+        return None, refine
+    if kind not in ("nets", "nets+refine"):
+        raise MatscanError(f"methods: {method!r} is not one of {', '.join(METHODS)} or nets:FILE, nets+refine:FILE")
+    key = path or "default"
+    if key not in cache:
+        from matscan.weights import load_model
+
+        cache[key] = load_model(key)[0]
+    return cache[key], refine
+
+
+def run_study(
+    materials: list[tuple[str, MapSet]],
+    rig_name: str = "dome24",
+    lights: Sequence[str] = ("1", "2", "3", "6", "10", "16", "24"),
+    methods: Sequence[str] = METHODS,
+    encodings: Sequence[str] = tuple(ENCODINGS),
+    refine_steps: int = 150,
+    noise: float = 0.002,
+    progress: bool = False,
+) -> list[dict[str, Any]]:
+    """Simulate captures of each material through the rig for each light subset and
+    encoding, reconstruct with each method, and score. Returns one row per
+    (material, encoding, lights, method)."""
+    from tqdm import tqdm
+
+    from matscan.capture import Capture
+    from matscan.capture.virtual import CameraModel, simulate_images
+    from matscan.reconstruct import ReconstructConfig, reconstruct_capture
+
+    rig = resolve_rig(rig_name)
+    novel = evaluation_lights(rig)
+    all_lights = rig.light_set()
+    cache: dict = {}
+    rows = []
+    jobs = [(n, m, e, s) for n, m in materials for e in encodings for s in lights]
+    for name, truth, enc, subset in tqdm(jobs, desc="evaluate", unit="capture", disable=not progress):
+        if enc not in ENCODINGS:
+            raise MatscanError(f"encodings: {enc!r} is not one of {', '.join(ENCODINGS)}")
+        encoding, bits = ENCODINGS[enc]
+        indices = list(rig.subset(subset))
+        seed = zlib.crc32(f"{name}|{enc}|{subset}".encode())
+        ls = rig.light_set(indices)
+        photos = simulate_images(
+            truth, ls, rig.field_mm, CameraModel(read_noise=noise, encoding=encoding, bits=bits), seed=seed
+        )
+        top = 1.0 - 0.5 / ((1 << bits) - 1)
+        capture = Capture(
+            rig,
+            rig.field_mm,
+            encoding,
+            photos,
+            (photos >= top).any(1, keepdim=True),
+            tuple(indices),
+            ls,
+            tuple(f"led_{k:02d}" for k in indices),
+        )
+        for method in methods:
+            nets, refine = _method_nets(method, cache)
+            t0 = time.perf_counter()
+            res = reconstruct_capture(capture, ReconstructConfig(refine=refine, refine_steps=refine_steps), nets)
+            seconds = time.perf_counter() - t0
+            row = {"material": name, "encoding": enc, "lights": subset, "method": method, "seconds": seconds}
+            row.update(map_scores(res.maps, truth))
+            row.update(rendering_scores(res.maps, truth, all_lights, rig.field_mm, "rig"))
+            row.update(rendering_scores(res.maps, truth, novel, rig.field_mm, "novel"))
+            rows.append(row)
+    return rows
+
+
+def summarise(rows: list[dict[str, Any]], keys: Sequence[str]) -> dict[tuple, dict[str, float]]:
+    """Mean of every numeric score over rows grouped by ``keys``."""
+    groups: dict[tuple, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r[k] for k in keys), []).append(r)
+    out = {}
+    for key, rs in groups.items():
+        numeric = [k for k, v in rs[0].items() if isinstance(v, float)]
+        out[key] = {k: sum(r[k] for r in rs) / len(rs) for k in numeric}
+    return out
+
+
+COLUMNS = (
+    "rmse_diffuse",
+    "rmse_specular",
+    "rmse_roughness",
+    "normal_degrees",
+    "rig_rmse",
+    "novel_rmse",
+    "novel_flip",
+    "seconds",
+)
+
+
+def markdown_table(rows: list[dict[str, Any]], lights: Sequence[str]) -> str:
+    """Mean scores per method and light count (over materials and encodings)."""
+    summary = summarise(rows, ("method", "lights"))
+    cols = [c for c in COLUMNS if any(c in v for v in summary.values())]
+    lines = ["| method | lights | " + " | ".join(cols) + " |", "|---|---:|" + "---:|" * len(cols)]
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    for m in methods:
+        for n in lights:
+            if (m, n) in summary:
+                v = summary[(m, n)]
+                lines.append(f"| {m} | {n} | " + " | ".join(f"{v[c]:.4f}" if c in v else "–" for c in cols) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(rows: list[dict[str, Any]], lights: Sequence[str], path: Path) -> bool:
+    """The input-count curves (the paper's Fig. 13): one panel per map, error against
+    number of lights, a line per method. Returns False where matplotlib is missing."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return False
+    summary = summarise(rows, ("method", "lights"))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    panels = ("rmse_diffuse", "rmse_specular", "rmse_roughness", "normal_degrees", "novel_rmse")
+    fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.4))
+    for ax, panel in zip(axes, panels, strict=True):
+        for m in methods:
+            xs = [int(n) for n in lights if (m, n) in summary]
+            ys = [summary[(m, n)][panel] for n in lights if (m, n) in summary]
+            ax.plot(xs, ys, marker="o", label=m)
+        ax.set_xscale("log")
+        ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+        ax.set_xticks([int(n) for n in lights])
+        ax.set_xticklabels(list(lights))
+        ax.set_xlabel("input lights")
+        ax.set_title(panel.replace("_", " "))
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    return True
+
+
+def evaluate_to_folder(
+    materials: list[tuple[str, MapSet]],
+    out: Path,
+    lights: Sequence[str],
+    methods: Sequence[str],
+    encodings: Sequence[str],
+    refine_steps: int = 150,
+    overwrite: bool = False,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """``matscan evaluate``: run the study and write results.json, results.md and plots."""
+    from matscan.atomic import atomic_folder
+
+    t0 = time.perf_counter()
+    rows = run_study(materials, "dome24", lights, methods, encodings, refine_steps, progress=progress)
+    with atomic_folder(out, overwrite=overwrite) as tmp:
+        (tmp / "results.json").write_text(
+            json.dumps(
+                {
+                    "rows": rows,
+                    "lights": list(lights),
+                    "methods": list(methods),
+                    "encodings": list(encodings),
+                    "materials": [n for n, _ in materials],
+                },
+                indent=1,
+            )
+            + "\n"
+        )
+        plotted = plot_curves(rows, lights, tmp / "input_count.png")
+        md = [
+            "# matscan evaluation",
+            "",
+            f"{len(materials)} materials × {len(encodings)} encodings × "
+            f"{len(lights)} light subsets × {len(methods)} methods; {time.perf_counter() - t0:.0f} s.",
+            "",
+            markdown_table(rows, lights),
+        ]
+        if plotted:
+            md += ["![input-count curves](input_count.png)", ""]
+        (tmp / "results.md").write_text("\n".join(md))
+    return {"rows": len(rows), "seconds": time.perf_counter() - t0}
