@@ -41,7 +41,7 @@ def _vector(text: str, n: int, name: str) -> tuple[float, ...]:
 
 
 def cmd_simulate(args: argparse.Namespace) -> str:
-    from matscan.capture.virtual import CameraModel, simulate
+    from matscan.capture.virtual import CameraModel, default_flash_geometry, simulate
     from matscan.mapset import read_mapset
     from matscan.rig import resolve_rig
 
@@ -65,7 +65,7 @@ def cmd_simulate(args: argparse.Namespace) -> str:
         progress=True,
     )
     size = args.size or maps.size[0]
-    count = 9 if rig.per_image_geometry else len(lights or ())
+    count = len(default_flash_geometry()) if rig.per_image_geometry else len(lights or ())
     return (
         f"simulate: wrote {count} photos ({size}×{size}, rig {rig.name}, {args.encoding} {bits}-bit, "
         f"noise {args.noise:g}) to {out} in {time.perf_counter() - t0:.1f} s"
