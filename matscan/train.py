@@ -348,8 +348,16 @@ def train(
     last_val: dict[str, float] = {}
     bar = tqdm(total=end - step, desc="train", unit="step", disable=not progress or rank != 0)
     batches = iter(loader)
+    def keep_going() -> bool:
+        go = step < end and not stop["now"] and time.monotonic() < deadline
+        if world > 1:  # every process stops at the same step, or DDP would wait forever
+            flag = torch.tensor([0 if go else 1])
+            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+            go = int(flag) == 0
+        return go
+
     try:
-        while step < end and not stop["now"] and time.monotonic() < deadline:
+        while keep_going():
             b = next(batches)
             x = network_input(b["inputs"], b["present"], b["offset"], b["full_size"], rig)
             out = model(x)
