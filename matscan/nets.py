@@ -25,6 +25,11 @@ network knows which photos it has and where in the dome a crop lies: 4L + 2
 channels. (The paper feeds the 3N photo channels as they are; dividing out the
 rig's known falloff and cosines is ours, to make training practical on a CPU.)
 
+With ``diffuse_from_photos`` (the ``cpu`` preset), G_d's output is added to the
+albedo the photos show (:func:`photo_albedo`), so it learns a correction (highlights,
+shadows, few lights) instead of reproducing every texture detail through the
+U-Net: ours, for training on a CPU budget; the ``paper`` preset keeps G_d plain.
+
 Sizes that are not a multiple of 2^depth are padded (reflect) up to one and the
 outputs cropped back (:meth:`MapNets.forward`).
 """
@@ -59,6 +64,7 @@ class NetConfig:
     growth: int = 32
     depth: int = 7
     global_dim: int = 0  # width of the global FC layers; 0: the level's channel count
+    diffuse_from_photos: bool = False  # G_d predicts a correction to the photos' albedo (see photo_albedo)
 
     def channels(self) -> list[int]:
         return [self.base + self.growth * i for i in range(self.depth + 1)]
@@ -66,7 +72,7 @@ class NetConfig:
 
 PRESETS: dict[str, NetConfig] = {
     "paper": NetConfig(base=64, growth=32, depth=7),
-    "cpu": NetConfig(base=16, growth=16, depth=5),  # 1.16 M parameters a network; ~0.35 s a step here
+    "cpu": NetConfig(base=16, growth=16, depth=5, diffuse_from_photos=True),  # 1.16 M parameters a network; ~0.35 s a step here
     "tiny": NetConfig(base=8, growth=8, depth=3),  # for tests
 }
 
@@ -138,6 +144,20 @@ def network_input(
         ]
     )
     return encode_inputs(photos / irr.clamp_min(IRRADIANCE_FLOOR), present, offset, full_size)
+
+
+def photo_albedo(x: Tensor, n_lights: int) -> Tensor:
+    """The albedo the photos show: per pixel and channel, the median over the present
+    lights of photo ÷ flat irradiance (decoded from a :func:`network_input`), (B, 3, H, W)
+    in [0, 1]; 0 where no light is present. Highlights and shadows fall out of the
+    median when enough lights are present; with few lights the network corrects it."""
+    b, _, h, w = x.shape
+    logs = x[:, : 3 * n_lights].reshape(b, n_lights, 3, h, w)
+    present = x[:, 3 * n_lights : 4 * n_lights, :1, :1].reshape(b, n_lights, 1, 1, 1) > 0.5
+    ratio = torch.expm1(logs * math.log1p(LOG_SCALE)) / LOG_SCALE
+    ratio = torch.where(present, ratio, torch.full_like(ratio, float("nan")))
+    med = torch.nanmedian(ratio, dim=1).values
+    return torch.nan_to_num(med, nan=0.0).clamp(0, 1)
 
 
 def input_channels(n_lights: int) -> int:
@@ -336,6 +356,8 @@ class MapNets(nn.Module):
         out = {}
         for name, t in raw.items():
             t = t[..., :h, :w]
+            if name == "diffuse" and self.cfg.diffuse_from_photos:
+                t = t + photo_albedo(x[..., :h, :w], self.n_lights)
             if name == "roughness":
                 t = 1 - t  # G_g predicts glossiness
             elif name in ("diffuse", "specular") and not self.training:

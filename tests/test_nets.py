@@ -141,3 +141,16 @@ def test_bad_names():
     with pytest.raises(MatscanError, match="variant"):
         MapNets(24, TINY, "two_encoders")
     assert NetConfig().channels()[-1] == 64 + 32 * 7
+
+
+def test_photo_albedo_is_the_median_over_present_lights():
+    photos = torch.zeros(1, 24, 3, 2, 2)
+    present = torch.zeros(1, 24)
+    for k, v in ((3, 0.2), (7, 0.9), (11, 0.3)):  # a highlight (0.9) among 0.2 and 0.3
+        photos[0, k] = v
+        present[0, k] = 1
+    x = encode_inputs(photos, present)
+    from matscan.nets import photo_albedo
+
+    torch.testing.assert_close(photo_albedo(x, 24), torch.full((1, 3, 2, 2), 0.3), atol=1e-5, rtol=0)
+    assert float(photo_albedo(encode_inputs(photos * 0, present * 0), 24).abs().max()) == 0
