@@ -96,12 +96,12 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
 # --- networks ----------------------------------------------------------------------------
 
 
-def _slots(capture: Capture, n_lights: int) -> tuple[Tensor, Tensor]:
-    h, w = capture.size
-    photos = torch.zeros(1, n_lights, 3, h, w)
+def _slots(capture: Capture, n_lights: int, r0: int, c0: int, th: int, tw: int) -> tuple[Tensor, Tensor]:
+    """A tile of the photos in their rig-light slots (1, L, 3, th, tw), and the presence (1, L)."""
+    photos = torch.zeros(1, n_lights, 3, th, tw)
     present = torch.zeros(1, n_lights)
     for img, k in zip(capture.images, capture.light_indices, strict=True):
-        photos[0, k] = img
+        photos[0, k] = img[:, r0 : r0 + th, c0 : c0 + tw]
         present[0, k] = 1
     return photos, present
 
@@ -138,7 +138,6 @@ def predict_maps(nets: MapNets, capture: Capture, tile: int = 512, overlap: int 
             f"model: trained for {nets.n_lights} lights, but rig {capture.rig.name!r} has {len(capture.rig.lights)}"
         )
     nets.eval()
-    photos, present = _slots(capture, nets.n_lights)
     h, w = capture.size
     m = nets.multiple
     tile = max(m, tile // m * m)
@@ -146,8 +145,9 @@ def predict_maps(nets: MapNets, capture: Capture, tile: int = 512, overlap: int 
     full = torch.tensor([[h, w]])
 
     def encoded(r0: int, c0: int, th: int, tw: int) -> Tensor:
+        photos, present = _slots(capture, nets.n_lights, r0, c0, th, tw)
         return network_input(
-            photos[..., r0 : r0 + th, c0 : c0 + tw],
+            photos,
             present,
             torch.tensor([[r0, c0]]),
             full,
