@@ -1,4 +1,4 @@
-"""Score a weights file on the fixed validation set and write its model card.
+"""Export a training run's weights into the package, score them, and write the model card.
 
 For each of the rig's named light subsets (dome24: the paper's Table 4, 1 to 24
 lights) it scores the networks and the trivial baseline (matscan.evaluate) on the
@@ -6,7 +6,8 @@ same procedural materials, never used in training, and writes the table into
 docs/model-card.md together with how the weights were trained (from the weights'
 own metadata and the run's log).
 
-Run: .venv/bin/python tools/model_card.py matscan/weights/dome24-cpu.safetensors runs/dome24-cpu [count]
+Run: .venv/bin/python tools/model_card.py runs/dome24-cpu [count]
+(writes matscan/weights/dome24-cpu.safetensors and docs/model-card.md)
 """
 
 from __future__ import annotations
@@ -20,15 +21,18 @@ from pathlib import Path
 import torch
 
 from matscan.evaluate import subset_table
-from matscan.train import load_weights
+from matscan.train import CHECKPOINT, export_weights, load_weights
+from matscan.weights import ROOT, SHIPPED
 
 MAP_COLUMNS = ("rmse_diffuse", "rmse_specular", "rmse_roughness", "rmse_normal", "normal_degrees")
 
 
 def main() -> int:
-    weights, run = Path(sys.argv[1]), Path(sys.argv[2])
-    count = int(sys.argv[3]) if len(sys.argv) > 3 else 64
+    run = Path(sys.argv[1])
+    count = int(sys.argv[2]) if len(sys.argv) > 2 else 64
     torch.set_num_threads(2)
+    weights = export_weights(run / CHECKPOINT, ROOT / SHIPPED["default"], {"run": str(run)})
+    weights.chmod(0o644)
     nets, meta = load_weights(weights)
     cfg = json.loads(meta.get("train_config") or meta["config"])
     t0 = time.perf_counter()
@@ -48,7 +52,7 @@ def main() -> int:
         "## How it was trained",
         "",
         f"- Command: `matscan train --out {run} --minutes M` (resumed across sessions; the run's "
-        f"`config.json` holds every setting), then `tools/model_card.py`.",
+        f"`config.json` holds every setting), then `tools/model_card.py {run}`.",
         f"- Networks: the paper's U-Net with global skip connections, preset `{cfg['preset']}` "
         f"(variant `{cfg['variant']}`): four independent networks for diffuse, specular, roughness (via "
         "glossiness) and normals; inputs are 24 light slots with presence planes and field coordinates, so one "
@@ -88,7 +92,7 @@ def main() -> int:
                 + " | ".join(f"{r[c]:.4f}" if c != "normal_degrees" else f"{r[c]:.1f}" for c in MAP_COLUMNS)
                 + " |"
             )
-    lines += ["", f"Scored in {seconds:.0f} s with `.venv/bin/python tools/model_card.py {weights} {run} {count}`.", ""]
+    lines += ["", f"Scored in {seconds:.0f} s with `.venv/bin/python tools/model_card.py {run} {count}`.", ""]
     Path("docs/model-card.md").write_text("\n".join(lines))
     print("\n".join(lines[-len(table) * 2 - 4 :]))
     return 0
