@@ -348,6 +348,7 @@ def train(
     last_val: dict[str, float] = {}
     bar = tqdm(total=end - step, desc="train", unit="step", disable=not progress or rank != 0)
     batches = iter(loader)
+
     def keep_going() -> bool:
         go = step < end and not stop["now"] and time.monotonic() < deadline
         if world > 1:  # every process stops at the same step, or DDP would wait forever
