@@ -157,7 +157,7 @@ def cmd_evaluate(args: argparse.Namespace) -> str:
     methods = [m.strip() for m in args.methods.split(",")]
     encodings = [e.strip() for e in args.encodings.split(",")]
     res = evaluate_to_folder(
-        materials, Path(args.out), lights, methods, encodings, args.steps, args.overwrite, progress=True
+        materials, Path(args.out), lights, methods, encodings, args.steps, args.overwrite, progress=True, jobs=args.jobs
     )
     return f"evaluate: {res['rows']} reconstructions scored into {args.out}/results.md in {res['seconds']:.0f} s"
 
@@ -370,9 +370,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lights", default="1,2,3,6,10,16,24", help="light subsets (default the paper's Table 4)")
     p.add_argument(
         "--methods",
-        default="nets,nets+refine,fit",
-        help="nets, nets+refine, fit, or nets:FILE / nets+refine:FILE for other weights",
+        default="baseline,nets,nets+refine,fit",
+        help="baseline, nets, nets+refine, fit, or nets:FILE / nets+refine:FILE for other weights",
     )
+    p.add_argument("--jobs", type=int, default=1, help="worker processes, one capture each at a time (default 1)")
     p.add_argument("--encodings", default="srgb8,linear16", help="capture encodings: srgb8, linear16")
     p.add_argument("--size", type=int, default=128, help="material size in pixels (default 128)")
     p.add_argument("--steps", type=int, default=150, help="refinement steps (default 150)")

@@ -111,11 +111,13 @@ def subset_table(
 
 # --- the study: matscan evaluate -------------------------------------------------------------
 
-#: Methods compared on the same captures. "nets": the networks alone; "nets+refine": the
-#: networks then refinement (what `matscan reconstruct` does); "fit": per-pixel fitting
-#: alone (same renderer and optimiser, from the flat start). Any other weights file is
-#: given as "nets:PATH" (or "nets+refine:PATH"): ablation variants.
-METHODS = ("nets", "nets+refine", "fit")
+#: Methods compared on the same captures. "baseline": the trivial baseline (the flat
+#: start: photo ÷ flat irradiance, flat normal, roughness 0.5, specular 0.04); "nets": the
+#: networks alone; "nets+refine": the networks then refinement (what `matscan reconstruct`
+#: does from 3 photos up); "fit": per-pixel fitting alone (same renderer and optimiser,
+#: from the flat start). Any other weights file is given as "nets:PATH" (or
+#: "nets+refine:PATH"): ablation variants.
+METHODS = ("baseline", "nets", "nets+refine", "fit")
 ENCODINGS = {"srgb8": ("srgb", 8), "linear16": ("linear", 16)}
 
 
@@ -171,7 +173,7 @@ def evaluation_lights(rig: Rig, count: int = 16, seed: int = 12345) -> LightSet:
 def _method_nets(method: str, cache: dict) -> tuple[MapNets | None, str]:
     kind, _, path = method.partition(":")
     refine = "on" if kind == "nets+refine" or kind == "fit" else "off"
-    if kind == "fit":
+    if kind in ("fit", "baseline") and not path:
         return None, refine
     if kind not in ("nets", "nets+refine"):
         raise MatscanError(f"methods: {method!r} is not one of {', '.join(METHODS)} or nets:FILE, nets+refine:FILE")
@@ -183,6 +185,80 @@ def _method_nets(method: str, cache: dict) -> tuple[MapNets | None, str]:
     return cache[key], refine
 
 
+def check_methods(methods: Sequence[str], encodings: Sequence[str]) -> None:
+    """Refuse unknown methods, encodings or weights files before any work starts."""
+    for enc in encodings:
+        if enc not in ENCODINGS:
+            raise MatscanError(f"encodings: {enc!r} is not one of {', '.join(ENCODINGS)}")
+    for method in methods:
+        kind, _, path = method.partition(":")
+        if kind not in METHODS or (path and kind not in ("nets", "nets+refine")):
+            raise MatscanError(f"methods: {method!r} is not one of {', '.join(METHODS)} or nets:FILE, nets+refine:FILE")
+        if path:
+            from matscan.weights import model_path
+
+            if not model_path(path).is_file():
+                raise MatscanError(f"methods: {method}: no such weights file {path}")
+
+
+#: Networks loaded in this process, by weights name or path.
+_NETS_CACHE: dict = {}
+
+
+def study_job(
+    name: str,
+    truth: MapSet,
+    enc: str,
+    subset: str,
+    methods: Sequence[str],
+    rig_name: str,
+    refine_steps: int,
+    noise: float,
+) -> list[dict[str, Any]]:
+    """One capture of the study: simulate ``truth`` through the rig's light ``subset`` in
+    encoding ``enc`` (noise seeded by material, encoding and subset, so every method and
+    every run sees the same photos), reconstruct with each method, and score."""
+    from matscan.capture import Capture
+    from matscan.capture.virtual import CameraModel, simulate_images
+    from matscan.reconstruct import ReconstructConfig, reconstruct_capture
+
+    rig = resolve_rig(rig_name)
+    encoding, bits = ENCODINGS[enc]
+    indices = list(rig.subset(subset))
+    seed = zlib.crc32(f"{name}|{enc}|{subset}".encode())
+    ls = rig.light_set(indices)
+    photos = simulate_images(
+        truth, ls, rig.field_mm, CameraModel(read_noise=noise, encoding=encoding, bits=bits), seed=seed
+    )
+    top = 1.0 - 0.5 / ((1 << bits) - 1)
+    capture = Capture(
+        rig,
+        rig.field_mm,
+        encoding,
+        photos,
+        (photos >= top).any(1, keepdim=True),
+        tuple(indices),
+        ls,
+        tuple(f"led_{k:02d}" for k in indices),
+    )
+    rows = []
+    for method in methods:
+        nets, refine = _method_nets(method, _NETS_CACHE)
+        t0 = time.perf_counter()
+        res = reconstruct_capture(capture, ReconstructConfig(refine=refine, refine_steps=refine_steps), nets)
+        seconds = time.perf_counter() - t0
+        row = {"material": name, "encoding": enc, "lights": subset, "method": method, "seconds": seconds}
+        row.update(map_scores(res.maps, truth))
+        row.update(rendering_scores(res.maps, truth, rig.light_set(), rig.field_mm, "rig"))
+        row.update(rendering_scores(res.maps, truth, evaluation_lights(rig), rig.field_mm, "novel"))
+        rows.append(row)
+    return rows
+
+
+def _worker_init() -> None:
+    torch.set_num_threads(1)  # one process per core beats threads within one process here
+
+
 def run_study(
     materials: list[tuple[str, MapSet]],
     rig_name: str = "dome24",
@@ -192,54 +268,43 @@ def run_study(
     refine_steps: int = 150,
     noise: float = 0.002,
     progress: bool = False,
+    jobs: int = 1,
 ) -> list[dict[str, Any]]:
     """Simulate captures of each material through the rig for each light subset and
     encoding, reconstruct with each method, and score. Returns one row per
-    (material, encoding, lights, method)."""
+    (material, encoding, lights, method), in that order whatever ``jobs`` (the number of
+    worker processes; each capture's photos are seeded, so the rows do not depend on it
+    beyond floating-point summation order)."""
     from tqdm import tqdm
 
-    from matscan.capture import Capture
-    from matscan.capture.virtual import CameraModel, simulate_images
-    from matscan.reconstruct import ReconstructConfig, reconstruct_capture
-
+    check_methods(methods, encodings)
     rig = resolve_rig(rig_name)
-    novel = evaluation_lights(rig)
-    all_lights = rig.light_set()
-    cache: dict = {}
-    rows = []
-    jobs = [(n, m, e, s) for n, m in materials for e in encodings for s in lights]
-    for name, truth, enc, subset in tqdm(jobs, desc="evaluate", unit="capture", disable=not progress):
-        if enc not in ENCODINGS:
-            raise MatscanError(f"encodings: {enc!r} is not one of {', '.join(ENCODINGS)}")
-        encoding, bits = ENCODINGS[enc]
-        indices = list(rig.subset(subset))
-        seed = zlib.crc32(f"{name}|{enc}|{subset}".encode())
-        ls = rig.light_set(indices)
-        photos = simulate_images(
-            truth, ls, rig.field_mm, CameraModel(read_noise=noise, encoding=encoding, bits=bits), seed=seed
-        )
-        top = 1.0 - 0.5 / ((1 << bits) - 1)
-        capture = Capture(
-            rig,
-            rig.field_mm,
-            encoding,
-            photos,
-            (photos >= top).any(1, keepdim=True),
-            tuple(indices),
-            ls,
-            tuple(f"led_{k:02d}" for k in indices),
-        )
-        for method in methods:
-            nets, refine = _method_nets(method, cache)
-            t0 = time.perf_counter()
-            res = reconstruct_capture(capture, ReconstructConfig(refine=refine, refine_steps=refine_steps), nets)
-            seconds = time.perf_counter() - t0
-            row = {"material": name, "encoding": enc, "lights": subset, "method": method, "seconds": seconds}
-            row.update(map_scores(res.maps, truth))
-            row.update(rendering_scores(res.maps, truth, all_lights, rig.field_mm, "rig"))
-            row.update(rendering_scores(res.maps, truth, novel, rig.field_mm, "novel"))
-            rows.append(row)
-    return rows
+    for subset in lights:
+        rig.subset(subset)  # unknown subsets fail here, not in a worker
+    work = [
+        (n, m, e, s, tuple(methods), rig_name, refine_steps, noise)
+        for n, m in materials
+        for e in encodings
+        for s in lights
+    ]
+    bar = tqdm(total=len(work), desc="evaluate", unit="capture", disable=not progress)
+    results: list[list[dict[str, Any]]] = [[] for _ in work]
+    if jobs <= 1:
+        for i, w in enumerate(work):
+            results[i] = study_job(*w)
+            bar.update()
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool:
+            futures = {pool.submit(study_job, *w): i for i, w in enumerate(work)}
+            for fut in as_completed(futures):
+                results[futures[fut]] = fut.result()
+                bar.update()
+    bar.close()
+    return [row for rs in results for row in rs]
 
 
 def summarise(rows: list[dict[str, Any]], keys: Sequence[str]) -> dict[tuple, dict[str, float]]:
@@ -277,6 +342,38 @@ def markdown_table(rows: list[dict[str, Any]], lights: Sequence[str]) -> str:
             if (m, n) in summary:
                 v = summary[(m, n)]
                 lines.append(f"| {m} | {n} | " + " | ".join(f"{v[c]:.4f}" if c in v else "–" for c in cols) + " |")
+    return "\n".join(lines) + "\n"
+
+
+SUMMARY_COLUMNS = (
+    "rmse_diffuse",
+    "rmse_specular",
+    "rmse_roughness",
+    "normal_degrees",
+    "ssim_diffuse",
+    "ssim_roughness",
+    "novel_rmse",
+    "novel_flip",
+)
+
+
+def source_of(material: str) -> str:
+    """The kind of evaluation material: procedural, photo (texture photographs) or mapset."""
+    return material.split("-", 1)[0] if material.startswith(("procedural-", "photo-")) else "mapset"
+
+
+def summary_table(rows: list[dict[str, Any]], by: str) -> str:
+    """The paper's Tables 1 and 9 form: a row per method (and per value of ``by``: "source"
+    or "encoding"), the mean of each score over materials and light counts."""
+    rows = [{**r, "source": source_of(r["material"])} for r in rows]
+    summary = summarise(rows, ("method", by))
+    cols = [c for c in SUMMARY_COLUMNS if any(c in v for v in summary.values())]
+    lines = [f"| method | {by} | " + " | ".join(cols) + " |", "|---|---|" + "---:|" * len(cols)]
+    for m in dict.fromkeys(r["method"] for r in rows):
+        for b in dict.fromkeys(r[by] for r in rows):
+            if (m, b) in summary:
+                v = summary[(m, b)]
+                lines.append(f"| {m} | {b} | " + " | ".join(f"{v[c]:.4f}" if c in v else "–" for c in cols) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -324,12 +421,16 @@ def evaluate_to_folder(
     refine_steps: int = 150,
     overwrite: bool = False,
     progress: bool = False,
+    jobs: int = 1,
 ) -> dict[str, Any]:
     """``matscan evaluate``: run the study and write results.json, results.md and plots."""
     from matscan.atomic import atomic_folder
 
+    check_methods(methods, encodings)
+    if out.is_dir() and any(out.iterdir()) and not overwrite:  # said before the work, not after it
+        raise MatscanError(f"{out}: folder exists and is not empty (choose another --out, or pass --overwrite)")
     t0 = time.perf_counter()
-    rows = run_study(materials, "dome24", lights, methods, encodings, refine_steps, progress=progress)
+    rows = run_study(materials, "dome24", lights, methods, encodings, refine_steps, progress=progress, jobs=jobs)
     with atomic_folder(out, overwrite=overwrite) as tmp:
         (tmp / "results.json").write_text(
             json.dumps(
@@ -351,7 +452,15 @@ def evaluate_to_folder(
             f"{len(materials)} materials × {len(encodings)} encodings × "
             f"{len(lights)} light subsets × {len(methods)} methods; {time.perf_counter() - t0:.0f} s.",
             "",
+            "## By method and number of lights (mean over materials and encodings)",
+            "",
             markdown_table(rows, lights),
+            "## By method and material source (mean over light counts and encodings)",
+            "",
+            summary_table(rows, "source"),
+            "## By method and capture encoding (mean over materials and light counts)",
+            "",
+            summary_table(rows, "encoding"),
         ]
         if plotted:
             md += ["![input-count curves](input_count.png)", ""]

@@ -88,3 +88,57 @@ def test_photo_materials_are_deterministic_and_in_range():
     assert torch.equal(a.diffuse, b.diffuse)
     assert 0.04 <= float(a.diffuse.min()) and float(a.diffuse.max()) <= 0.76
     torch.testing.assert_close(a.normal.norm(dim=0), torch.ones(32, 32), atol=1e-5, rtol=0)
+
+
+def test_study_in_two_processes_equals_one_and_baseline_is_the_flat_start(tmp_path):
+    from matscan.evaluate import run_study
+    from matscan.materials.procedural import random_material
+
+    truth = random_material(24, 2**41 + 5)[1]
+    args = ([("proc", truth)], "dome24", ["1", "6"], ["baseline", "fit"], ["srgb8", "linear16"], 5)
+    one = run_study(*args)
+    two = run_study(*args, jobs=2)
+    assert [(r["encoding"], r["lights"], r["method"]) for r in one] == [
+        (r["encoding"], r["lights"], r["method"]) for r in two
+    ]
+    for a, b in zip(one, two, strict=True):
+        for k, v in a.items():
+            if k not in ("seconds", "material", "encoding", "lights", "method"):
+                assert abs(v - b[k]) < 1e-4, (k, v, b[k])
+    # the baseline's roughness is 0.5 and its normal is flat: scores in closed form from the truth
+    base = next(r for r in one if r["method"] == "baseline")
+    assert abs(base["rmse_roughness"] - float((truth.roughness - 0.5).square().mean().sqrt())) < 1e-6
+    flat = torch.rad2deg(torch.acos(truth.normal[2].clamp(-1, 1))).mean()
+    assert abs(base["normal_degrees"] - float(flat)) < 1e-3
+
+
+def test_study_refuses_bad_methods_and_a_full_folder_before_working(tmp_path):
+    import pytest
+
+    from matscan.errors import MatscanError
+    from matscan.evaluate import evaluate_to_folder
+    from matscan.materials.procedural import random_material
+
+    materials = [("proc", random_material(16, 2**41)[1])]
+    with pytest.raises(MatscanError, match="'magic' is not one of"):
+        evaluate_to_folder(materials, tmp_path / "a", ["1"], ["magic"], ["srgb8"])
+    with pytest.raises(MatscanError, match="no such weights file"):
+        evaluate_to_folder(materials, tmp_path / "a", ["1"], ["nets:missing.safetensors"], ["srgb8"])
+    with pytest.raises(MatscanError, match="'jpeg' is not one of"):
+        evaluate_to_folder(materials, tmp_path / "a", ["1"], ["fit"], ["jpeg"])
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("")
+    with pytest.raises(MatscanError, match="not empty"):
+        evaluate_to_folder(materials, tmp_path / "full", ["1"], ["fit"], ["srgb8"])
+
+
+def test_summary_tables_have_a_row_per_method_and_source():
+    from matscan.evaluate import summary_table
+
+    rows = [
+        {"material": "procedural-000-x", "encoding": "srgb8", "lights": "1", "method": "fit", "rmse_diffuse": 0.1},
+        {"material": "procedural-001-y", "encoding": "srgb8", "lights": "1", "method": "fit", "rmse_diffuse": 0.3},
+        {"material": "photo-brick", "encoding": "srgb8", "lights": "1", "method": "fit", "rmse_diffuse": 0.5},
+    ]
+    text = summary_table(rows, "source")
+    assert "| fit | procedural | 0.2000 |" in text and "| fit | photo | 0.5000 |" in text
