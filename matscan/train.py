@@ -179,13 +179,20 @@ def load_checkpoint(path: Path, nets: MapNets, opt: torch.optim.Optimizer | None
     return int(meta["step"]), float(meta.get("elapsed_seconds", 0)), json.loads(meta["config"])
 
 
-def export_weights(checkpoint: Path, out: Path, extra: dict[str, str] | None = None) -> Path:
-    """Weights only (no optimizer state) with what is needed to rebuild the networks."""
+def export_weights(
+    checkpoint: Path, out: Path, extra: dict[str, str] | None = None, dtype: torch.dtype = torch.float32
+) -> Path:
+    """Weights only (no optimizer state) with what is needed to rebuild the networks,
+    stored as ``dtype`` (float16 halves the file; they load into float32 networks)."""
     from safetensors import safe_open
 
     with safe_open(str(checkpoint), framework="pt") as f:
         meta = f.metadata()
-    tensors = {k[len("model.") :]: v for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")}
+    tensors = {
+        k[len("model.") :]: v.to(dtype) if v.is_floating_point() else v
+        for k, v in load_file(str(checkpoint)).items()
+        if k.startswith("model.")
+    }
     cfg = json.loads(meta["config"])
     info = {
         "format": "matscan-weights/1",

@@ -52,6 +52,13 @@ def test_export_and_load_weights(tmp_path):
     nets, meta = load_weights(out)
     assert meta["step"] == "1" and meta["note"] == "x" and not nets.training
     assert out.stat().st_size < (tmp_path / "a" / "checkpoint.safetensors").stat().st_size
+    # float16 storage: half the bytes, and the same parameters to float16 precision
+    half = export_weights(tmp_path / "a" / "checkpoint.safetensors", tmp_path / "h.safetensors", dtype=torch.float16)
+    nets16, _ = load_weights(half)
+    assert half.stat().st_size < 0.55 * out.stat().st_size
+    for (k, a), (_, b) in zip(nets.state_dict().items(), nets16.state_dict().items(), strict=True):
+        assert b.dtype == a.dtype, k
+        torch.testing.assert_close(b, a.half().float(), rtol=0, atol=0)
 
 
 def test_two_ddp_processes_equal_one_process(tmp_path):

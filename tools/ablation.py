@@ -1,0 +1,78 @@
+"""Export the ablation runs' weights and tabulate their training and validation.
+
+Each run folder (trained with `matscan train --out runs/ablation/VARIANT --variant VARIANT
+--steps 2000`) gets its weights exported as float16 beside it
+(runs/ablation/VARIANT.safetensors, about half the float32 size, small enough to commit), for
+`matscan evaluate --methods nets:runs/ablation/VARIANT.safetensors`. Prints, as Markdown, the
+parameter count, seconds per step and the validation RMSE at the last step every run
+reached (the fixed procedural validation set, random light subsets), and, when given a
+reference run of the same configuration (--reference runs/dome24-cpu), how far the
+variant `four`'s validation is from the reference's at the same steps: training is seeded,
+so only floating-point summation order (thread counts) separates them.
+
+Run: .venv/bin/python tools/ablation.py runs/ablation/{four,one_encoder,global_track,no_global_skip}
+     [--reference runs/dome24-cpu]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import torch
+
+from matscan.train import CHECKPOINT, export_weights, load_weights
+
+COLUMNS = ("rmse_diffuse", "rmse_specular", "rmse_roughness", "rmse_normal", "normal_degrees")
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    return list(csv.DictReader(path.open())) if path.is_file() else []
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--reference", type=Path, help="a run of the same configuration to compare `four` with")
+    args = parser.parse_args()
+
+    rows = []
+    for run in args.runs:
+        cfg = json.loads((run / "config.json").read_text())
+        out = run.with_suffix(".safetensors")
+        export_weights(run / CHECKPOINT, out, {"run": str(run)}, dtype=torch.float16)
+        nets, meta = load_weights(out)
+        val = read_csv(run / "val.csv")
+        step = int(meta["step"])
+        seconds = float(meta.get("elapsed_seconds", 0))
+        rows.append((run, cfg, nets, step, seconds, val, out))
+
+    print("| variant | parameters | steps | s/step | " + " | ".join(COLUMNS) + " | weights |")
+    print("|---|---:|---:|---:|" + "---:|" * len(COLUMNS) + "---|")
+    for _run, cfg, nets, step, seconds, val, out in rows:
+        last = val[-1] if val else {}
+        params = sum(p.numel() for p in nets.parameters())
+        cells = " | ".join(f"{float(last[c]):.4f}" if c in last else "–" for c in COLUMNS)
+        print(
+            f"| {cfg['variant']} | {params:,} | {step} | {seconds / max(step, 1):.2f} | {cells} | "
+            f"`{out}` ({out.stat().st_size / 2**20:.1f} MiB) |"
+        )
+    print(f"\n(validation at step {rows[0][5][-1]['step'] if rows[0][5] else '–'}; threads per run: see the logs)")
+
+    if args.reference:
+        ref = {r["step"]: r for r in read_csv(args.reference / "val.csv")}
+        for run, cfg, _nets, _step, _s, val, _out in rows:
+            if cfg["variant"] != "four":
+                continue
+            print(f"\n`{run}` against `{args.reference}` at the same steps (largest absolute difference):")
+            for r in val:
+                if r["step"] in ref:
+                    diff = max(abs(float(r[c]) - float(ref[r["step"]][c])) for c in COLUMNS)
+                    print(f"- step {r['step']}: {diff:.2e}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
