@@ -375,7 +375,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--jobs", type=int, default=1, help="worker processes, one capture each at a time (default 1)")
     p.add_argument("--encodings", default="srgb8,linear16", help="capture encodings: srgb8, linear16")
-    p.add_argument("--size", type=int, default=128, help="material size in pixels (default 128)")
+    p.add_argument(
+        "--size",
+        type=int,
+        default=256,
+        help="material size in pixels, covering the rig field (default 256: 0.47 mm a pixel on dome24, the coarse end "
+        "of the scales the networks are trained on)",
+    )
     p.add_argument("--steps", type=int, default=150, help="refinement steps (default 150)")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_evaluate)

@@ -3,8 +3,9 @@ beside a trivial baseline.
 
 The trivial baseline is what a user gets with no learning at all: diffuse = each
 photo divided by the irradiance a flat surface receives there (the cosine and the
-distance falloff and LED lobe of design.md's image formation), taking the median
-over the photos so highlights drop out; a flat normal; roughness 0.5; specular 0.04.
+distance falloff and LED lobe of design.md's image formation), taking a low order
+statistic over the photos so highlights drop out (:func:`matscan.render.flat_albedo`);
+a flat normal; roughness 0.5; specular 0.04.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from matscan.data import fixed_validation_set
 from matscan.errors import MatscanError
 from matscan.mapset import MapSet
 from matscan.nets import MAPS, MapNets, network_input
-from matscan.render import flat_irradiance, render, surface_points
+from matscan.render import flat_albedo, flat_irradiance, render, surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
 
 BASELINE_ROUGHNESS = 0.5
@@ -38,7 +39,7 @@ def baseline_maps(sample: dict[str, Tensor], rig: Rig) -> dict[str, Tensor]:
     h, w = sample["inputs"].shape[-2:]
     pts = surface_points(rig.field_mm, (h, w), tuple(sample["offset"].tolist()), tuple(sample["full_size"].tolist()))
     e = flat_irradiance(rig.light_set(present), pts)
-    rho = (sample["inputs"][present] / e.clamp_min(1e-3)).median(dim=0).values.clamp(0, 1)
+    rho = flat_albedo(sample["inputs"][present], e)
     normal = torch.zeros(3, h, w)
     normal[2] = 1
     return {

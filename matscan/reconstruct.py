@@ -39,7 +39,7 @@ from matscan.capture import Capture, load_capture
 from matscan.errors import MatscanError
 from matscan.mapset import CONVENTIONS, MapSet, normalize_normals, write_maps
 from matscan.nets import MapNets, network_input
-from matscan.render import flat_irradiance, render, surface_points
+from matscan.render import flat_albedo, flat_irradiance, render, surface_points
 from matscan.rig import LightSet
 
 LOG_EPS = 0.01
@@ -199,11 +199,12 @@ def predict_maps(nets: MapNets, capture: Capture, tile: int = 512, overlap: int 
 
 
 def flat_start(capture: Capture) -> MapSet:
-    """Maps to start refinement from without networks: albedo = median of photo ÷ flat
-    irradiance, flat normal, roughness 0.5, specular 0.04."""
+    """Maps to start refinement from without networks: albedo from photo ÷ flat
+    irradiance (:func:`matscan.render.flat_albedo`), flat normal, roughness 0.5,
+    specular 0.04."""
     h, w = capture.size
     e = flat_irradiance(capture.lights, surface_points(capture.field_mm, (h, w)))
-    rho = (capture.images / e.clamp_min(1e-3)).median(dim=0).values.clamp(0, 1)
+    rho = flat_albedo(capture.images, e)
     normal = torch.zeros(3, h, w)
     normal[2] = 1
     return MapSet(rho, torch.full((3, h, w), 0.04), torch.full((1, h, w), 0.5), normal)

@@ -273,6 +273,21 @@ def flat_irradiance(lights: LightSet, points: Tensor) -> Tensor:
     return lights.intensity[:, :, None, None] * e[:, None]
 
 
+def flat_albedo(photos: Tensor, irradiance: Tensor) -> Tensor:
+    """Albedo (3, H, W) in [0, 1] of a flat Lambertian reading of photos (L, 3, H, W)
+    whose flat-surface irradiance is given (:func:`flat_irradiance`): per pixel and
+    channel, the lower-third order statistic (sorted index ⌊(L − 1)/3⌋) of photo ÷
+    irradiance. Highlights only add light, so a low order statistic drops them; the
+    lowest would keep shadows and noise. Measured on the fixed validation set (dome24,
+    32 materials), albedo RMSE by light count 1/2/3/6/10/16/24: 0.148, 0.096, 0.089,
+    0.065, 0.054, 0.053, 0.052; the median gave 0.148, 0.096, 0.202, 0.055, 0.060, 0.055,
+    0.052 (with 3 lights two of them sit near the camera and both highlight).
+    """
+    ratio = photos / irradiance.clamp_min(1e-3)
+    k = (ratio.shape[0] - 1) // 3
+    return ratio.sort(dim=0).values[k].clamp(0, 1)
+
+
 def render_rig(
     diffuse: Tensor,
     specular: Tensor,

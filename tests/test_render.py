@@ -228,3 +228,22 @@ def test_flat_irradiance_closed_form():
     up = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 1, 3)
     img = render(ones, torch.zeros(3, 1, 3), torch.ones(1, 1, 3), up, lights, pts)
     torch.testing.assert_close(img[0, 0, 0], expected)
+
+
+def test_flat_albedo_drops_highlights_and_keeps_the_lambertian_value():
+    from matscan.render import flat_albedo
+
+    irr = torch.rand(3, 3, 4, 4) + 0.5
+    rho = torch.full((3, 4, 4), 0.3)
+    photos = rho * irr
+    photos[1] += 0.5  # two of three photos carry a highlight (the dome24 "3" subset on a gloss)
+    photos[2] += 0.2
+    torch.testing.assert_close(flat_albedo(photos, irr), rho)
+    # 24 photos, 7 of them highlighted and 1 shadowed: sorted index 7 is still a clean reading
+    irr = torch.rand(24, 3, 2, 2) + 0.5
+    photos = 0.3 * irr
+    photos[:7] *= 3.0
+    photos[7] *= 0.2
+    torch.testing.assert_close(flat_albedo(photos, irr), torch.full((3, 2, 2), 0.3))
+    # one photo: its own ratio, clipped to [0, 1]
+    torch.testing.assert_close(flat_albedo(torch.full((1, 3, 1, 1), 2.0), torch.ones(1, 3, 1, 1)), torch.ones(3, 1, 1))
