@@ -323,7 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--refine",
         default="auto",
         choices=["auto", "on", "off"],
-        help="refine by inverse rendering (auto: with 3 or more photos)",
+        help="refine by inverse rendering (auto: with 10 or more photos, where it helps the networks' maps "
+        "(docs/results.md), and always without networks)",
     )
     p.add_argument("--steps", type=int, default=150, help="refinement steps per tile (default 150)")
     p.add_argument("--tile", type=int, default=512, help="network tile size in pixels (default 512)")

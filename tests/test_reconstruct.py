@@ -219,3 +219,15 @@ def test_emissive_fit_on_a_fluorescent_print(tmp_path):
     assert with_e.emissive is not None and without.emissive is None
     assert rmse(with_e.emissive, truth.emissive) < 0.5 * rmse(torch.zeros_like(truth.emissive), truth.emissive)
     assert rmse(with_e.diffuse, truth.diffuse) < 0.7 * rmse(without.diffuse, truth.diffuse)
+
+
+def test_auto_refines_the_networks_maps_from_ten_photos_and_always_without_networks(tmp_path):
+    from matscan.nets import MapNets, preset
+
+    nets = MapNets(24, preset("tiny"))
+    six, _ = _capture(tmp_path / "a", size=16, lights=[0, 4, 8, 12, 16, 20])
+    ten, _ = _capture(tmp_path / "b", size=16, lights=[4, 6, 8, 10, 12, 14, 16, 18, 20, 22])
+    cfg = ReconstructConfig(refine_steps=2)
+    assert "refine_s" not in reconstruct_capture(six, cfg, nets).timings
+    assert "refine_s" in reconstruct_capture(ten, cfg, nets).timings
+    assert "refine_s" in reconstruct_capture(six, cfg, None).timings

@@ -66,11 +66,11 @@ def main() -> int:
         for run, cfg, _nets, _step, _s, val, _out in rows:
             if cfg["variant"] != "four":
                 continue
-            print(f"\n`{run}` against `{args.reference}` at the same steps (largest absolute difference):")
+            print(f"\n`{run}` against `{args.reference}` at the same steps (validation, this run / reference):")
             for r in val:
                 if r["step"] in ref:
-                    diff = max(abs(float(r[c]) - float(ref[r["step"]][c])) for c in COLUMNS)
-                    print(f"- step {r['step']}: {diff:.2e}")
+                    pairs = ", ".join(f"{c} {float(r[c]):.4f} / {float(ref[r['step']][c]):.4f}" for c in COLUMNS)
+                    print(f"- step {r['step']}: {pairs}")
     return 0
 
 

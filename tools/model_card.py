@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -72,7 +73,7 @@ def reading(table: dict) -> list[str]:
 def main() -> int:
     run = Path(sys.argv[1])
     count = int(sys.argv[2]) if len(sys.argv) > 2 else 64
-    torch.set_num_threads(2)
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
     weights = export_weights(run / CHECKPOINT, ROOT / SHIPPED["default"], {"run": str(run)})
     weights.chmod(0o644)
     nets, meta = load_weights(weights)
