@@ -67,9 +67,9 @@ class ReconstructConfig:
 
 #: ``--refine auto`` refines captures with at least this many photos. Measured in
 #: docs/results.md (11 materials, Table 4 subsets): from 10 photos up refinement lowers
-#: every error of the networks' maps; with 1–3 it raises them (the re-rendering error
-#: under novel lights included), and with 6 it trades 1.7° → 5.1° normal error for
-#: better diffuse and roughness.
+#: every error of the networks' maps but specular's (a tie) and halves the re-rendering
+#: error under novel lights; with 1–3 it raises nearly all of them, and with 6 it trades
+#: 1.7° → 5.1° normal error for better diffuse and roughness.
 REFINE_AUTO_PHOTOS = 10
 
 
