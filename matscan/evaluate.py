@@ -115,7 +115,7 @@ def subset_table(
 #: Methods compared on the same captures. "baseline": the trivial baseline (the flat
 #: start: photo ÷ flat irradiance, flat normal, roughness 0.5, specular 0.04); "nets": the
 #: networks alone; "nets+refine": the networks then refinement (what `matscan reconstruct`
-#: does from 3 photos up); "fit": per-pixel fitting alone (same renderer and optimiser,
+#: does from 10 photos up); "fit": per-pixel fitting alone (same renderer and optimiser,
 #: from the flat start). Any other weights file is given as "nets:PATH" (or
 #: "nets+refine:PATH"): ablation variants.
 METHODS = ("baseline", "nets", "nets+refine", "fit")
