@@ -29,6 +29,10 @@ With ``diffuse_from_photos`` (the ``cpu`` preset), G_d's output is added to the
 albedo the photos show (:func:`photo_albedo`), so it learns a correction (highlights,
 shadows, few lights) instead of reproducing every texture detail through the
 U-Net: ours, for training on a CPU budget; the ``paper`` preset keeps G_d plain.
+``photo_statistic`` says which order statistic of the photos that albedo is: the
+``cpu`` preset takes the lower third, as the trivial baseline does
+(:func:`matscan.render.flat_albedo`); networks trained before the field existed
+used the median and load with it (:func:`matscan.train.net_config_of`).
 
 Sizes that are not a multiple of 2^depth are padded (reflect) up to one and the
 outputs cropped back (:meth:`MapNets.forward`).
@@ -56,6 +60,13 @@ LOG_SCALE = 100.0
 IRRADIANCE_FLOOR = 0.05
 
 
+#: Which order statistic of photo ÷ flat irradiance over the n present lights is the
+#: albedo the photos show (:func:`photo_albedo`): sorted index ⌊(n − 1)/2⌋ (the lower
+#: median, as torch.nanmedian) or ⌊(n − 1)/3⌋ (the lower third, which drops a highlight
+#: seen in two of three photos: Table 4's 3-light subset has two lights beside the camera).
+PHOTO_STATISTICS = {"median": 2, "lower_third": 3}
+
+
 @dataclass(frozen=True)
 class NetConfig:
     """Shape of one U-Net."""
@@ -65,6 +76,11 @@ class NetConfig:
     depth: int = 7
     global_dim: int = 0  # width of the global FC layers; 0: the level's channel count
     diffuse_from_photos: bool = False  # G_d predicts a correction to the photos' albedo (see photo_albedo)
+    photo_statistic: str = "median"  # that albedo's order statistic over the present lights: see PHOTO_STATISTICS
+
+    def __post_init__(self) -> None:
+        if self.photo_statistic not in PHOTO_STATISTICS:
+            raise MatscanError(f"photo_statistic: {self.photo_statistic!r} is not one of {', '.join(PHOTO_STATISTICS)}")
 
     def channels(self) -> list[int]:
         return [self.base + self.growth * i for i in range(self.depth + 1)]
@@ -73,7 +89,7 @@ class NetConfig:
 PRESETS: dict[str, NetConfig] = {
     "paper": NetConfig(base=64, growth=32, depth=7),
     # 1.16 M parameters a network; a training step (batch 4, 128²) takes about 0.65 s here
-    "cpu": NetConfig(base=16, growth=16, depth=5, diffuse_from_photos=True),
+    "cpu": NetConfig(base=16, growth=16, depth=5, diffuse_from_photos=True, photo_statistic="lower_third"),
     "tiny": NetConfig(base=8, growth=8, depth=3),  # for tests
 }
 
@@ -147,18 +163,29 @@ def network_input(
     return encode_inputs(photos / irr.clamp_min(IRRADIANCE_FLOOR), present, offset, full_size)
 
 
-def photo_albedo(x: Tensor, n_lights: int) -> Tensor:
-    """The albedo the photos show: per pixel and channel, the median over the present
-    lights of photo ÷ flat irradiance (decoded from a :func:`network_input`), (B, 3, H, W)
-    in [0, 1]; 0 where no light is present. Highlights and shadows fall out of the
-    median when enough lights are present; with few lights the network corrects it."""
+def photo_albedo(x: Tensor, n_lights: int, statistic: str = "median") -> Tensor:
+    """The albedo the photos show, decoded from a :func:`network_input`.
+
+    Args:
+        x: (B, 4L + 2, H, W) network input of L = ``n_lights`` slots.
+        statistic: a key of :data:`PHOTO_STATISTICS`: per pixel and channel, the
+            order statistic of photo ÷ flat irradiance over the n present lights at
+            sorted index ⌊(n − 1)/2⌋ (``median``) or ⌊(n − 1)/3⌋ (``lower_third``).
+
+    Returns:
+        (B, 3, H, W) linear albedo in [0, 1]; 0 where no light is present. Highlights
+        only add light and fall out of a low order statistic; with few lights the
+        network corrects what is left.
+    """
     b, _, h, w = x.shape
     logs = x[:, : 3 * n_lights].reshape(b, n_lights, 3, h, w)
     present = x[:, 3 * n_lights : 4 * n_lights, :1, :1].reshape(b, n_lights, 1, 1, 1) > 0.5
     ratio = torch.expm1(logs * math.log1p(LOG_SCALE)) / LOG_SCALE
-    ratio = torch.where(present, ratio, torch.full_like(ratio, float("nan")))
-    med = torch.nanmedian(ratio, dim=1).values
-    return torch.nan_to_num(med, nan=0.0).clamp(0, 1)
+    ratio = torch.where(present, ratio, torch.full_like(ratio, math.inf))  # absent lights sort last
+    count = present.reshape(b, n_lights).sum(dim=1)  # (B,)
+    k = ((count - 1).clamp_min(0) // PHOTO_STATISTICS[statistic]).view(b, 1, 1, 1, 1).expand(b, 1, 3, h, w)
+    value = ratio.sort(dim=1).values.gather(1, k)[:, 0]  # (B, 3, H, W)
+    return torch.where(count.view(b, 1, 1, 1) > 0, value, torch.zeros_like(value)).clamp(0, 1)
 
 
 def input_channels(n_lights: int) -> int:
@@ -358,7 +385,7 @@ class MapNets(nn.Module):
         for name, t in raw.items():
             t = t[..., :h, :w]
             if name == "diffuse" and self.cfg.diffuse_from_photos:
-                t = t + photo_albedo(x[..., :h, :w], self.n_lights)
+                t = t + photo_albedo(x[..., :h, :w], self.n_lights, self.cfg.photo_statistic)
             if name == "roughness":
                 t = 1 - t  # G_g predicts glossiness
             elif name in ("diffuse", "specular") and not self.training:

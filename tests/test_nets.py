@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -11,6 +12,7 @@ from matscan.errors import MatscanError
 from matscan.nets import (
     LOG_SCALE,
     MAPS,
+    PHOTO_STATISTICS,
     PRESETS,
     VARIANTS,
     MapNets,
@@ -18,6 +20,7 @@ from matscan.nets import (
     encode_inputs,
     input_channels,
     network_input,
+    photo_albedo,
     preset,
 )
 
@@ -143,14 +146,36 @@ def test_bad_names():
     assert NetConfig().channels()[-1] == 64 + 32 * 7
 
 
-def test_photo_albedo_is_the_median_over_present_lights():
+def test_photo_albedo_order_statistics_by_hand():
     photos = torch.zeros(1, 24, 3, 2, 2)
     present = torch.zeros(1, 24)
     for k, v in ((3, 0.2), (7, 0.9), (11, 0.3)):  # a highlight (0.9) among 0.2 and 0.3
         photos[0, k] = v
         present[0, k] = 1
     x = encode_inputs(photos, present)
-    from matscan.nets import photo_albedo
-
+    # sorted 0.2, 0.3, 0.9: the median is index ⌊2/2⌋ = 1, the lower third index ⌊2/3⌋ = 0
     torch.testing.assert_close(photo_albedo(x, 24), torch.full((1, 3, 2, 2), 0.3), atol=1e-5, rtol=0)
-    assert float(photo_albedo(encode_inputs(photos * 0, present * 0), 24).abs().max()) == 0
+    torch.testing.assert_close(photo_albedo(x, 24, "lower_third"), torch.full((1, 3, 2, 2), 0.2), atol=1e-5, rtol=0)
+    for statistic in PHOTO_STATISTICS:
+        assert float(photo_albedo(encode_inputs(photos * 0, present * 0), 24, statistic).abs().max()) == 0
+
+
+@pytest.mark.parametrize("count", [1, 2, 7, 24])
+@pytest.mark.parametrize("statistic", ["median", "lower_third"])
+def test_photo_albedo_matches_numpy_sort_of_the_present_lights(count, statistic):
+    g = torch.Generator().manual_seed(count)
+    photos = torch.rand(2, 24, 3, 5, 4, generator=g) * 0.8
+    present = torch.zeros(2, 24)
+    for b in range(2):
+        present[b, torch.randperm(24, generator=g)[:count]] = 1
+    got = photo_albedo(encode_inputs(photos, present), 24, statistic).numpy()
+    k = (count - 1) // {"median": 2, "lower_third": 3}[statistic]
+    for b in range(2):
+        lit = photos[b, present[b] > 0].numpy()  # (count, 3, H, W): the decoded ratios are these photos
+        np.testing.assert_allclose(got[b], np.sort(lit, axis=0)[k], atol=1e-5, rtol=0)
+
+
+def test_photo_statistic_is_checked_and_the_cpu_preset_takes_the_lower_third():
+    with pytest.raises(MatscanError, match="photo_statistic: 'mean' is not one of median, lower_third"):
+        NetConfig(photo_statistic="mean")
+    assert preset("cpu").photo_statistic == "lower_third" and preset("paper").photo_statistic == "median"
