@@ -267,6 +267,7 @@ def cmd_train(args: argparse.Namespace) -> str:
         "val_every",
         "val_count",
         "checkpoint_minutes",
+        "init",
     ):
         value = getattr(args, key)
         if value is not None:
@@ -424,6 +425,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--val-every", dest="val_every", type=int, default=None)
     p.add_argument("--val-count", dest="val_count", type=int, default=None)
     p.add_argument("--checkpoint-minutes", dest="checkpoint_minutes", type=float, default=None)
+    p.add_argument(
+        "--init",
+        default=None,
+        metavar="WEIGHTS",
+        help="start a new run from trained weights (checkpoint or exported file), with a fresh optimiser",
+    )
     p.add_argument("--max-steps", dest="max_steps", type=int, default=None, help="stop after this many more steps")
     p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
     p.set_defaults(func=cmd_train)

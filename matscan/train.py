@@ -11,6 +11,18 @@ A run is deterministic given its config: sample i of the data, and the novel
 lights of its rendering loss, are fixed by (seed, i); step s uses samples
 s·B·W … (s+1)·B·W − 1 (B batch, W processes). So stopping and resuming from the checkpoint continues the same run.
 
+A run may start from trained weights (``init``: a checkpoint or an exported weights
+file) with a fresh Adam state: a second stage of training under a changed network
+config (say, another ``photo_statistic``). It records the training behind those
+weights (``init_step``, ``init_elapsed_seconds``, ``init_photo_statistic``) and draws
+the samples after the ones they saw: its step s uses the samples of step
+``init_step`` + s.
+
+Checkpoints and weights store the network config they were trained with
+(``net_config``); a resumed run keeps it, whatever the preset says now. Files
+written before that field existed load with the median ``photo_statistic`` they
+were trained with (:func:`net_config_of`).
+
 Data-parallel: started under ``torchrun --nproc_per_node N -m matscan.cli train …``
 each process trains on its share of every step's samples and gradients are
 averaged (DDP; gloo on CPU, NCCL on GPU). Only rank 0 writes files.
@@ -37,7 +49,7 @@ from torch.utils.data import DataLoader, Sampler
 from matscan.data import DataConfig, SvbrdfDataset, fixed_validation_set
 from matscan.errors import MatscanError, input_error
 from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights
-from matscan.nets import MAPS, MapNets, network_input, preset
+from matscan.nets import MAPS, MapNets, NetConfig, network_input, preset
 from matscan.render import surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
 
@@ -66,6 +78,7 @@ class TrainConfig:
     checkpoint_minutes: float = 10.0
     workers: int = 1
     seed: int = 0
+    init: str = ""  # start a new run from these weights (checkpoint or exported file); "" = from scratch
 
     @staticmethod
     def from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
@@ -96,9 +109,40 @@ class StepSampler(Sampler[list[int]]):
         return 2**31
 
 
-def build_nets(cfg: TrainConfig) -> MapNets:
+def build_nets(cfg: TrainConfig, net: NetConfig | None = None) -> MapNets:
+    """The networks of a run: ``net`` (a stored config), or else the preset's."""
     rig = resolve_rig(cfg.rig)
-    return MapNets(len(rig.lights), preset(cfg.preset), cfg.variant, cfg.maps)
+    return MapNets(len(rig.lights), net or preset(cfg.preset), cfg.variant, cfg.maps)
+
+
+#: Metadata of the weights a run started from (``init``), carried into its checkpoints and exports.
+INIT_KEYS = ("init", "init_step", "init_elapsed_seconds", "init_photo_statistic")
+
+
+def net_config_of(meta: dict[str, str], cfg: TrainConfig) -> NetConfig:
+    """The network config a checkpoint or weights file was trained with: its stored
+    ``net_config``, or, for files written before that was stored, the preset's with
+    the median ``photo_statistic`` (the only statistic there was then)."""
+    if "net_config" in meta:
+        return NetConfig(**json.loads(meta["net_config"]))
+    return NetConfig(**{**asdict(preset(cfg.preset)), "photo_statistic": "median"})
+
+
+def _metadata(path: Path) -> dict[str, str]:
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return f.metadata() or {}
+    except Exception as exc:  # safetensors raises its own error types for a damaged header
+        raise input_error(path, f"not a readable safetensors file ({exc})") from None
+
+
+def _config_of(meta: dict[str, str], path: Path) -> TrainConfig:
+    text = meta.get("train_config") or meta.get("config")
+    if text is None:
+        raise input_error(path, "not a matscan weights file (no training config in its metadata)")
+    return TrainConfig.from_dict(json.loads(text), str(path))
 
 
 def sample_lights(indices: Tensor, cfg: TrainConfig, rig) -> LightSet:
@@ -131,9 +175,16 @@ def _groups(nets: MapNets) -> dict[str, list[Tensor]]:
 
 
 def save_checkpoint(
-    path: Path, nets: MapNets, opt: torch.optim.Optimizer, step: int, cfg: TrainConfig, elapsed: float
+    path: Path,
+    nets: MapNets,
+    opt: torch.optim.Optimizer,
+    step: int,
+    cfg: TrainConfig,
+    elapsed: float,
+    extra: dict[str, str] | None = None,
 ) -> None:
-    """Weights, Adam state and step in one safetensors file, written atomically."""
+    """Weights, Adam state, step and network config in one safetensors file, written
+    atomically; ``extra``: more metadata (the run's ``init`` record)."""
     tensors = {f"model.{k}": v.detach().contiguous() for k, v in nets.state_dict().items()}
     state = opt.state_dict()
     adam_steps = {}
@@ -146,21 +197,28 @@ def save_checkpoint(
         "config": json.dumps(asdict(cfg)),
         "adam_steps": json.dumps(adam_steps),
         "elapsed_seconds": f"{elapsed:.1f}",
+        "net_config": json.dumps(asdict(nets.cfg)),
         "format": "matscan-checkpoint/1",
+        **(extra or {}),
     }
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     save_file(tensors, str(tmp), metadata=meta)
     tmp.replace(path)
 
 
-def load_checkpoint(path: Path, nets: MapNets, opt: torch.optim.Optimizer | None) -> tuple[int, float, dict]:
-    """Restore weights (and Adam state); returns (step, elapsed seconds, config dict)."""
-    from safetensors import safe_open
-
-    with safe_open(str(path), framework="pt") as f:
-        meta = f.metadata()
+def load_checkpoint(
+    path: Path, nets: MapNets, opt: torch.optim.Optimizer | None, subset: bool = False
+) -> tuple[int, float, dict]:
+    """Restore weights (and Adam state); returns (step, elapsed seconds, metadata).
+    Without ``opt`` the file may also be an exported weights file. ``subset``: the
+    file may hold more networks than ``nets`` (a run that trains some of them
+    starting from all four); only ``nets``' own are taken."""
+    meta = _metadata(path)
     tensors = load_file(str(path))
-    model = {k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")}
+    model = {k.removeprefix("model."): v for k, v in tensors.items() if not k.startswith("opt.")}
+    if subset:
+        own = nets.state_dict()
+        model = {k: v for k, v in model.items() if k in own}
     try:
         nets.load_state_dict(model)
     except RuntimeError as exc:
@@ -176,31 +234,65 @@ def load_checkpoint(path: Path, nets: MapNets, opt: torch.optim.Optimizer | None
                 "exp_avg_sq": tensors[f"opt.{pid}.exp_avg_sq"],
             }
         opt.load_state_dict(state)
-    return int(meta["step"]), float(meta.get("elapsed_seconds", 0)), json.loads(meta["config"])
+    return int(meta.get("step", 0)), float(meta.get("elapsed_seconds", 0)), meta
 
 
 def export_weights(
-    checkpoint: Path, out: Path, extra: dict[str, str] | None = None, dtype: torch.dtype = torch.float32
+    checkpoint: Path,
+    out: Path,
+    extra: dict[str, str] | None = None,
+    dtype: torch.dtype = torch.float32,
+    fill_from: Path | None = None,
 ) -> Path:
     """Weights only (no optimizer state) with what is needed to rebuild the networks,
-    stored as ``dtype`` (float16 halves the file; they load into float32 networks)."""
-    from safetensors import safe_open
+    stored as ``dtype`` (float16 halves the file; they load into float32 networks).
 
-    with safe_open(str(checkpoint), framework="pt") as f:
-        meta = f.metadata()
-    tensors = {
-        k[len("model.") :]: v.to(dtype) if v.is_floating_point() else v
-        for k, v in load_file(str(checkpoint)).items()
-        if k.startswith("model.")
-    }
-    cfg = json.loads(meta["config"])
+    ``fill_from``: a checkpoint or weights file whose networks complete a run that
+    trained only some of them (the four networks are independent, so a run may
+    retrain one, e.g. G_d after a change of ``photo_statistic``). The file then holds
+    every network of both; its ``maps`` metadata names them and ``networks`` says, per
+    network, how many steps and seconds of training are behind it and where it came from.
+    """
+    meta = _metadata(checkpoint)
+    cfg = TrainConfig.from_dict(json.loads(meta["config"]), str(checkpoint))
+    net = net_config_of(meta, cfg)
+    tensors = {k.removeprefix("model."): v for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")}
+    steps = int(meta["step"]) + int(meta.get("init_step", 0))
+    seconds = float(meta.get("elapsed_seconds", 0)) + float(meta.get("init_elapsed_seconds", 0))
+    networks = {m: {"steps": steps, "elapsed_seconds": round(seconds, 1), "from": str(checkpoint)} for m in cfg.maps}
+    if fill_from is not None:
+        fill_meta = _metadata(fill_from)
+        fill_cfg = _config_of(fill_meta, fill_from)
+        fill_net = net_config_of(fill_meta, fill_cfg)
+        fill_maps = [m for m in fill_meta.get("maps", ",".join(fill_cfg.maps)).split(",") if m not in cfg.maps]
+        if cfg.variant != "four" or fill_cfg.variant != "four":
+            raise input_error(fill_from, "only the four independent networks (variant four) can be combined")
+        # photo_statistic shapes G_d's input only: other networks may come from a run with another
+        if {**asdict(fill_net), "photo_statistic": ""} != {**asdict(net), "photo_statistic": ""} or (
+            "diffuse" in fill_maps and fill_net.photo_statistic != net.photo_statistic
+        ):
+            raise input_error(fill_from, f"its networks ({fill_net}) do not fit those of {checkpoint} ({net})")
+        fill_steps = int(fill_meta.get("step", 0)) + int(fill_meta.get("init_step", 0))
+        fill_seconds = float(fill_meta.get("elapsed_seconds", 0)) + float(fill_meta.get("init_elapsed_seconds", 0))
+        for k, v in load_file(str(fill_from)).items():
+            k = k.removeprefix("model.")
+            if k.startswith("nets.") and k.split(".")[1] in fill_maps:
+                tensors[k] = v
+        for m in fill_maps:
+            networks[m] = {"steps": fill_steps, "elapsed_seconds": round(fill_seconds, 1), "from": str(fill_from)}
+    maps = [m for m in MAPS if m in networks]
     info = {
         "format": "matscan-weights/1",
-        "train_config": json.dumps(cfg),
+        "train_config": json.dumps(asdict(cfg)),
+        "net_config": json.dumps(asdict(net)),
+        "maps": ",".join(maps),
+        "networks": json.dumps({m: networks[m] for m in maps}),
         "step": meta["step"],
         "elapsed_seconds": meta.get("elapsed_seconds", "0"),
+        **{k: meta[k] for k in INIT_KEYS if k in meta},
     }
     info.update(extra or {})
+    tensors = {k: v.to(dtype) if v.is_floating_point() else v for k, v in tensors.items()}
     tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
     save_file(tensors, str(tmp), metadata=info)
     tmp.replace(out)
@@ -209,25 +301,15 @@ def export_weights(
 
 def load_weights(path: str | Path) -> tuple[MapNets, dict[str, str]]:
     """Networks from an exported weights file (or a checkpoint), in eval mode."""
-    from safetensors import safe_open
-
     path = Path(path)
     if not path.is_file():
         raise input_error(path, "no such weights file")
-    with safe_open(str(path), framework="pt") as f:
-        meta = f.metadata() or {}
-    if "train_config" in meta:
-        cfg = TrainConfig.from_dict(json.loads(meta["train_config"]), str(path))
-    elif "config" in meta:
-        cfg = TrainConfig.from_dict(json.loads(meta["config"]), str(path))
-    else:
-        raise input_error(path, "not a matscan weights file (no training config in its metadata)")
-    nets = build_nets(cfg)
-    tensors = load_file(str(path))
-    state = {
-        k[len("model.") :] if k.startswith("model.") else k: v for k, v in tensors.items() if not k.startswith("opt.")
-    }
-    nets.load_state_dict(state)
+    meta = _metadata(path)
+    cfg = _config_of(meta, path)
+    if "maps" in meta:  # an export may hold networks of several runs (export_weights fill_from)
+        cfg = TrainConfig(**{**asdict(cfg), "maps": tuple(meta["maps"].split(","))})
+    nets = build_nets(cfg, net_config_of(meta, cfg))
+    load_checkpoint(path, nets, None)
     nets.eval()
     return nets, meta
 
@@ -292,11 +374,15 @@ def train(
     if world > 1 and not torch.distributed.is_initialized():
         torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
     torch.manual_seed(cfg.seed)
-    nets = build_nets(cfg)
-    opt = torch.optim.Adam(nets.parameters(), lr=cfg.lr)
-
     config_path = run / "config.json"
     ckpt = run / CHECKPOINT
+    init = Path(cfg.init) if cfg.init else None
+    if init is not None and not ckpt.is_file() and not init.is_file():
+        raise input_error(init, "no such weights file to start the run from (init)")
+    # a resumed run keeps the network config it started with
+    start_meta = _metadata(ckpt) if ckpt.is_file() else {}
+    nets = build_nets(cfg, net_config_of(start_meta, cfg) if start_meta else None)
+    opt = torch.optim.Adam(nets.parameters(), lr=cfg.lr)
     step, elapsed = 0, 0.0
     if rank == 0:
         run.mkdir(parents=True, exist_ok=True)
@@ -313,8 +399,24 @@ def train(
             config_path.write_text(json.dumps(asdict(cfg), indent=2) + "\n")
     if world > 1:
         torch.distributed.barrier()
+    init_record: dict[str, str] = {}
     if ckpt.is_file():
-        step, elapsed, _ = load_checkpoint(ckpt, nets, opt)
+        step, elapsed, meta = load_checkpoint(ckpt, nets, opt)
+        init_record = {k: meta[k] for k in INIT_KEYS if k in meta}
+    elif init is not None:
+        init_meta = _metadata(init)
+        init_cfg = _config_of(init_meta, init)
+        load_checkpoint(init, nets, None, subset=True)  # weights only: Adam starts afresh
+        # the training behind the init weights, their own init included
+        before = int(init_meta.get("step", 0)) + int(init_meta.get("init_step", 0))
+        seconds = float(init_meta.get("elapsed_seconds", 0)) + float(init_meta.get("init_elapsed_seconds", 0))
+        init_record = {
+            "init": str(cfg.init),
+            "init_step": str(before),
+            "init_elapsed_seconds": f"{seconds:.1f}",
+            "init_photo_statistic": net_config_of(init_meta, init_cfg).photo_statistic,
+        }
+    sample_offset = int(init_record.get("init_step", 0))  # the samples the init weights saw are skipped
 
     model: torch.nn.Module = nets
     if world > 1:
@@ -326,7 +428,7 @@ def train(
     # kernels can deadlock; each worker builds its own kernels
     loader = DataLoader(
         data,
-        batch_sampler=StepSampler(step, cfg.batch, rank, world),
+        batch_sampler=StepSampler(sample_offset + step, cfg.batch, rank, world),
         num_workers=cfg.workers,
         persistent_workers=cfg.workers > 0,
         prefetch_factor=4 if cfg.workers > 0 else None,
@@ -409,12 +511,12 @@ def train(
                     last_val = validate(nets, val_samples, rig)
                     _append_csv(val_path, {"step": step, **{k: round(v, 6) for k, v in last_val.items()}})
                 if time.monotonic() - last_ckpt > cfg.checkpoint_minutes * 60:
-                    save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start)
+                    save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start, init_record)
                     last_ckpt = time.monotonic()
     finally:
         bar.close()
         if rank == 0:
-            save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start)
+            save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start, init_record)
             for sig, handler in old_handlers.items():
                 signal.signal(sig, handler)
         if world > 1:

@@ -2,16 +2,30 @@
 
 from __future__ import annotations
 
+import csv
+import json
 import os
 import subprocess
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 import pytest
 import torch
+from safetensors.torch import load_file, save_file
 
 from matscan.errors import MatscanError
-from matscan.train import TrainConfig, export_weights, load_weights, train
+from matscan.nets import MAPS, PRESETS, NetConfig, preset
+from matscan.train import (
+    CHECKPOINT,
+    TrainConfig,
+    _metadata,
+    build_nets,
+    export_weights,
+    load_weights,
+    save_checkpoint,
+    train,
+)
 
 CFG = TrainConfig(
     preset="tiny", crop=32, batch=2, val_every=4, val_count=2, workers=0, render_lights=2, steps=6, log_every=1
@@ -96,3 +110,82 @@ def test_two_ddp_processes_equal_one_process(tmp_path):
         strict=True,
     ):
         torch.testing.assert_close(pa, pb, rtol=1e-5, atol=1e-6)
+
+
+def _log(run: Path) -> list[dict[str, str]]:
+    rows = list(csv.DictReader((run / "log.csv").open()))
+    for r in rows:
+        r.pop("seconds")
+    return rows
+
+
+def test_init_starts_from_weights_with_the_samples_after_theirs(tmp_path):
+    a = TrainConfig(**{**CFG.__dict__, "steps": 4, "val_every": 0})
+    train(a, tmp_path / "a", progress=False)
+    train(a, tmp_path / "b", max_steps=3, progress=False)
+    init = tmp_path / "b" / CHECKPOINT
+    # step 4 of A uses the weights after 3 steps and samples 6, 7: a run started from B's weights logs,
+    # at its first step, exactly A's step-4 losses (Adam's state does not enter a forward pass)
+    c = TrainConfig(**{**a.__dict__, "init": str(init)})
+    train(c, tmp_path / "c", max_steps=1, progress=False)
+    step4 = _log(tmp_path / "a")[3]
+    assert _log(tmp_path / "c")[0] == {**step4, "step": "1"}
+    meta = _metadata(tmp_path / "c" / CHECKPOINT)
+    assert (meta["init"], meta["init_step"], meta["init_photo_statistic"]) == (str(init), "3", "median")
+    # one network alone, started from all four: the same losses for it
+    d = TrainConfig(**{**c.__dict__, "maps": ("diffuse",)})
+    train(d, tmp_path / "d", max_steps=1, progress=False)
+    assert _log(tmp_path / "d")[0] == {k: v for k, v in step4.items() if k.startswith("diffuse")} | {"step": "1"}
+
+
+def test_a_missing_init_file_is_refused_naming_it(tmp_path):
+    cfg = TrainConfig(**{**CFG.__dict__, "init": str(tmp_path / "nope.safetensors")})
+    with pytest.raises(MatscanError, match="nope.safetensors: no such weights file"):
+        train(cfg, tmp_path / "a", progress=False)
+
+
+def test_export_fills_the_networks_a_run_did_not_train(tmp_path):
+    full = TrainConfig(**{**CFG.__dict__, "val_every": 0})
+    train(full, tmp_path / "b", max_steps=3, progress=False)
+    init = tmp_path / "b" / CHECKPOINT
+    d = TrainConfig(**{**full.__dict__, "maps": ("diffuse",), "init": str(init)})
+    train(d, tmp_path / "d", max_steps=1, progress=False)
+    alone, _ = load_weights(export_weights(tmp_path / "d" / CHECKPOINT, tmp_path / "g.safetensors"))
+    assert alone.maps == ("diffuse",)  # without the fill the file has G_d only
+    out = export_weights(tmp_path / "d" / CHECKPOINT, tmp_path / "w.safetensors", fill_from=init)
+    nets, meta = load_weights(out)
+    assert nets.maps == MAPS and meta["maps"] == ",".join(MAPS)
+    b_nets, _ = load_weights(init)
+    d_nets, _ = load_weights(tmp_path / "d" / CHECKPOINT)
+    for name in MAPS:
+        source = d_nets if name == "diffuse" else b_nets
+        for pa, pb in zip(nets.nets[name].parameters(), source.nets[name].parameters(), strict=True):
+            torch.testing.assert_close(pa, pb, rtol=0, atol=0)
+    record = json.loads(meta["networks"])
+    assert record["diffuse"]["steps"] == 4 and record["normal"]["steps"] == 3
+    assert record["normal"]["from"] == str(init)
+
+
+def test_files_without_a_net_config_load_with_the_median(tmp_path):
+    cfg = TrainConfig(preset="cpu")
+    nets = build_nets(cfg)
+    assert nets.cfg.photo_statistic == "lower_third"
+    path = tmp_path / "c.safetensors"
+    save_checkpoint(path, nets, torch.optim.Adam(nets.parameters()), 0, cfg, 0.0)
+    assert load_weights(path)[0].cfg.photo_statistic == "lower_third"
+    tensors = load_file(str(path))
+    meta = _metadata(path)
+    del meta["net_config"]  # as every file written before the field existed
+    save_file(tensors, str(path), metadata=meta)
+    old, _ = load_weights(path)
+    assert old.cfg == NetConfig(**{**asdict(preset("cpu")), "photo_statistic": "median"})
+    for pa, pb in zip(old.parameters(), nets.parameters(), strict=True):
+        torch.testing.assert_close(pa, pb, rtol=0, atol=0)
+
+
+def test_a_resumed_run_keeps_the_net_config_it_started_with(tmp_path, monkeypatch):
+    train(CFG, tmp_path / "a", max_steps=1, progress=False)
+    monkeypatch.setitem(PRESETS, "tiny", NetConfig(**{**asdict(PRESETS["tiny"]), "photo_statistic": "lower_third"}))
+    train(CFG, tmp_path / "a", max_steps=1, progress=False)
+    meta = _metadata(tmp_path / "a" / CHECKPOINT)
+    assert meta["step"] == "2" and json.loads(meta["net_config"])["photo_statistic"] == "median"
