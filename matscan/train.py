@@ -274,12 +274,15 @@ def export_weights(
             raise input_error(fill_from, f"its networks ({fill_net}) do not fit those of {checkpoint} ({net})")
         fill_steps = int(fill_meta.get("step", 0)) + int(fill_meta.get("init_step", 0))
         fill_seconds = float(fill_meta.get("elapsed_seconds", 0)) + float(fill_meta.get("init_elapsed_seconds", 0))
+        records = json.loads(fill_meta.get("networks", "{}"))  # an assembled file keeps its networks' own records
         for k, v in load_file(str(fill_from)).items():
             k = k.removeprefix("model.")
             if k.startswith("nets.") and k.split(".")[1] in fill_maps:
                 tensors[k] = v
         for m in fill_maps:
-            networks[m] = {"steps": fill_steps, "elapsed_seconds": round(fill_seconds, 1), "from": str(fill_from)}
+            networks[m] = records.get(
+                m, {"steps": fill_steps, "elapsed_seconds": round(fill_seconds, 1), "from": str(fill_from)}
+            )
     maps = [m for m in MAPS if m in networks]
     info = {
         "format": "matscan-weights/1",

@@ -164,6 +164,11 @@ def test_export_fills_the_networks_a_run_did_not_train(tmp_path):
     record = json.loads(meta["networks"])
     assert record["diffuse"]["steps"] == 4 and record["normal"]["steps"] == 3
     assert record["normal"]["from"] == str(init)
+    # filling from an assembled file keeps the records of the networks taken from it
+    train(d, tmp_path / "d", max_steps=1, progress=False)
+    again = export_weights(tmp_path / "d" / CHECKPOINT, tmp_path / "w2.safetensors", fill_from=out)
+    record = json.loads(load_weights(again)[1]["networks"])
+    assert record["diffuse"]["steps"] == 5 and record["normal"] == {**record["normal"], "steps": 3, "from": str(init)}
 
 
 def test_files_without_a_net_config_load_with_the_median(tmp_path):

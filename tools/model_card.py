@@ -6,12 +6,17 @@ same procedural materials, never used in training, and writes the table into
 docs/model-card.md together with how the weights were trained (from the weights'
 own metadata and the run's log).
 
-Run: .venv/bin/python tools/model_card.py runs/dome24-cpu [count]
+Run: .venv/bin/python tools/model_card.py runs/dome24-cpu [count] [--fill FILE]
 (writes matscan/weights/dome24-cpu.safetensors and docs/model-card.md)
+
+A run that trained only some of the four networks (``matscan train --maps``) is
+completed with the others of ``--fill`` (default: the weights the run started
+from, its ``init``); the card says, per network, how much training is behind it.
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import os
@@ -22,13 +27,13 @@ from pathlib import Path
 import torch
 
 from matscan.evaluate import subset_table
-from matscan.train import CHECKPOINT, export_weights, load_weights
+from matscan.train import CHECKPOINT, _metadata, export_weights, load_weights
 from matscan.weights import ROOT, SHIPPED
 
 MAP_COLUMNS = ("rmse_diffuse", "rmse_specular", "rmse_roughness", "rmse_normal", "normal_degrees")
 
 
-def reading(table: dict) -> list[str]:
+def reading(table: dict, statistic: str) -> list[str]:
     """What the table says, derived from its numbers (so it cannot go stale)."""
     names = list(table)
     losses = [
@@ -55,7 +60,7 @@ def reading(table: dict) -> list[str]:
         "",
         "Where the networks' error rises as lights are added: " + ("; ".join(rises) if rises else "nowhere") + ".",
     ]
-    if any(" from 2 to 3 lights" in r for r in rises):
+    if statistic == "median" and any(" from 2 to 3 lights" in r for r in rises):
         out += [
             "",
             "The 3-light subset of Table 4 (lights 0, 16, 23) puts two of its three lights in the top ring beside "
@@ -71,13 +76,25 @@ def reading(table: dict) -> list[str]:
 
 
 def main() -> int:
-    run = Path(sys.argv[1])
-    count = int(sys.argv[2]) if len(sys.argv) > 2 else 64
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("count", type=int, nargs="?", default=64, help="validation materials (default 64)")
+    parser.add_argument("--fill", type=Path, default=None, help="weights of the networks the run did not train")
+    args = parser.parse_args()
+    run, count = args.run, args.count
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
-    weights = export_weights(run / CHECKPOINT, ROOT / SHIPPED["default"], {"run": str(run)})
+    run_meta = _metadata(run / CHECKPOINT)
+    fill = args.fill
+    if fill is None and len(json.loads(run_meta["config"])["maps"]) < 4:
+        fill = Path(run_meta["init"])
+        if not fill.is_file():
+            sys.exit(f"{fill}: the weights this run started from are needed for the networks it did not train (--fill)")
+    weights = export_weights(run / CHECKPOINT, ROOT / SHIPPED["default"], {"run": str(run)}, fill_from=fill)
     weights.chmod(0o644)
     nets, meta = load_weights(weights)
     cfg = json.loads(meta.get("train_config") or meta["config"])
+    net = json.loads(meta["net_config"])
+    networks = json.loads(meta["networks"])
     t0 = time.perf_counter()
     table = subset_table(nets, cfg["rig"], count=count, crop=cfg["crop"])
     seconds = time.perf_counter() - t0
@@ -85,7 +102,13 @@ def main() -> int:
 
     rows = list(csv.DictReader((run / "log.csv").open())) if (run / "log.csv").is_file() else []
     hours = float(meta.get("elapsed_seconds", 0)) / 3600
+    init_hours = float(meta.get("init_elapsed_seconds", 0)) / 3600
     params = sum(p.numel() for p in nets.parameters())
+    train_cmd = (
+        f"matscan train --out {run} --minutes M"
+        + (f" --maps {','.join(cfg['maps'])}" if len(cfg["maps"]) < 4 else "")
+        + (f" --init {meta['init']}" if "init" in meta else "")
+    )
     lines = [
         "# Model card: `default` (dome24, `cpu` preset)",
         "",
@@ -94,28 +117,51 @@ def main() -> int:
         "",
         "## How it was trained",
         "",
-        f"- Command: `matscan train --out {run} --minutes M` (resumed across sessions; the run's "
-        f"`config.json` holds every setting), then `tools/model_card.py {run}`.",
+        f"- Command: `{train_cmd}` (resumed across sessions; the run's `config.json` holds every setting), "
+        f"then `tools/model_card.py {run}" + (f" --fill {args.fill}" if args.fill else "") + "`.",
         f"- Networks: the paper's U-Net with global skip connections, preset `{cfg['preset']}` "
         f"(variant `{cfg['variant']}`): four independent networks for diffuse, specular, roughness (via "
         "glossiness) and normals; inputs are 24 light slots with presence planes and field coordinates, so one "
         "set of weights takes any subset of lights. Each photo is divided by the irradiance a flat surface gets "
-        "there from its light, and G_d predicts a correction to the median of those ratios (the `cpu` preset's "
-        "`diffuse_from_photos`; the `paper` preset keeps G_d plain).",
+        "there from its light, and G_d predicts a correction to the "
+        + {"median": "median", "lower_third": "lower-third order statistic"}[net["photo_statistic"]]
+        + " of those ratios over the photos present (the `cpu` preset's `diffuse_from_photos` and "
+        "`photo_statistic`; the `paper` preset keeps G_d plain).",
         f"- Data: procedural materials of `matscan.materials` (14 families, mixed as in Deschaintre et al. 2018), "
         f"{cfg['crop']}² crops anywhere in the dome24 field, random light subsets (Table 4 subsets half the time), "
         "calibration jitter, Poisson–Gaussian noise, 8-bit sRGB or 16-bit linear quantisation; rendered on the fly.",
         f"- Optimiser: Adam, lr {cfg['lr']}, batch {cfg['batch']}, per-network gradient clipping at "
         f"{cfg['grad_clip']}; losses: map L1, rendering loss under {cfg['render_lights']} random novel lights "
         f"(λ_r = {cfg['lambda_render']:.4f}), 1 − SSIM for diffuse, cosine for normals.",
-        f"- Steps: {meta['step']} ({int(meta['step']) * cfg['batch']:,} samples), wall time {hours:.2f} h on "
-        "2 CPU cores (no GPU).",
+        f"- This run: {meta['step']} steps ({int(meta['step']) * cfg['batch']:,} samples) of "
+        f"{', '.join(cfg['maps'])} in {hours:.2f} h on 2 CPU cores (no GPU)"
+        + (
+            f", started from `{meta['init']}` ({meta['init_step']} steps, {init_hours:.2f} h, G_d's start the "
+            f"{meta['init_photo_statistic'].replace('_', ' ')}) and drawing the samples after those."
+            if "init" in meta
+            else "."
+        ),
     ]
     if rows:
         lines.append(
             f"- Last logged training losses (step {rows[-1]['step']}): "
-            + ", ".join(f"{m} {float(rows[-1][m]):.3f}" for m in ("diffuse", "specular", "roughness", "normal"))
+            + ", ".join(f"{m} {float(rows[-1][m]):.3f}" for m in cfg["maps"])
         )
+    lines += [
+        "",
+        "| network | steps in all | samples | training behind it | from |",
+        "|---|---:|---:|---:|---|",
+        *(
+            f"| {m} | {r['steps']:,} | {r['steps'] * cfg['batch']:,} | {r['elapsed_seconds'] / 3600:.2f} h | "
+            f"`{r['from']}` |"
+            for m, r in networks.items()
+        ),
+        "",
+        "The four networks are independent and each has its own loss (one predicted map rendered with the "
+        "other three true maps), so one network trained alone gets the same updates as in a run of all four "
+        "(`tests/test_train.py`); the hours are the wall time of the runs behind each network, whether "
+        "they trained all four networks at once or it alone.",
+    ]
     lines += [
         "",
         "## What it scores",
@@ -138,8 +184,9 @@ def main() -> int:
                 + " | ".join(f"{r[c]:.4f}" if c != "normal_degrees" else f"{r[c]:.1f}" for c in MAP_COLUMNS)
                 + " |"
             )
-    lines += ["", *reading(table)]
-    lines += ["", f"Scored in {seconds:.0f} s with `.venv/bin/python tools/model_card.py {run} {count}`.", ""]
+    lines += ["", *reading(table, net["photo_statistic"])]
+    cmd = f"tools/model_card.py {run} {count}" + (f" --fill {args.fill}" if args.fill else "")
+    lines += ["", f"Scored in {seconds:.0f} s with `.venv/bin/python {cmd}`.", ""]
     Path("docs/model-card.md").write_text("\n".join(lines))
     print("\n".join(lines[-len(table) * 2 - 4 :]))
     return 0
