@@ -526,12 +526,13 @@ def reconstruct(
     from matscan.calibrate import apply_calibration
 
     capture = apply_calibration(load_capture(capture_path))
-    nets, model_meta, model_name = None, {}, "none"
+    nets, model_name, networks = None, "none", {}
     if cfg.model != "none":
+        from matscan.train import training_record
         from matscan.weights import load_model, model_path
 
         nets, model_meta = load_model(cfg.model)
-        model_name = str(model_path(cfg.model))
+        model_name, networks = str(model_path(cfg.model)), training_record(model_meta)
     validation = leave_out_validation(capture, cfg.validate, cfg, nets) if cfg.validate else None
     res = reconstruct_capture(capture, cfg, nets, progress)
     positions = list(range(len(capture.files)))
@@ -546,7 +547,7 @@ def reconstruct(
         "size_px": [w, h],
         "field_mm": list(capture.field_mm),
         "mm_per_pixel": list(capture.mm_per_pixel),
-        "model": {"name": cfg.model, "file": model_name, "step": model_meta.get("step")},
+        "model": {"name": cfg.model, "file": model_name, "networks": networks},
         "config": asdict(cfg),
         "refined": bool(res.refine_history),
         "intensity_scale": res.intensity_scale,

@@ -257,9 +257,7 @@ def export_weights(
     cfg = TrainConfig.from_dict(json.loads(meta["config"]), str(checkpoint))
     net = net_config_of(meta, cfg)
     tensors = {k.removeprefix("model."): v for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")}
-    steps = int(meta["step"]) + int(meta.get("init_step", 0))
-    seconds = float(meta.get("elapsed_seconds", 0)) + float(meta.get("init_elapsed_seconds", 0))
-    networks = {m: {"steps": steps, "elapsed_seconds": round(seconds, 1), "from": str(checkpoint)} for m in cfg.maps}
+    networks = {m: {**r, "from": str(checkpoint)} for m, r in training_record(meta).items()}
     if fill_from is not None:
         fill_meta = _metadata(fill_from)
         fill_cfg = _config_of(fill_meta, fill_from)
@@ -272,17 +270,13 @@ def export_weights(
             "diffuse" in fill_maps and fill_net.photo_statistic != net.photo_statistic
         ):
             raise input_error(fill_from, f"its networks ({fill_net}) do not fit those of {checkpoint} ({net})")
-        fill_steps = int(fill_meta.get("step", 0)) + int(fill_meta.get("init_step", 0))
-        fill_seconds = float(fill_meta.get("elapsed_seconds", 0)) + float(fill_meta.get("init_elapsed_seconds", 0))
-        records = json.loads(fill_meta.get("networks", "{}"))  # an assembled file keeps its networks' own records
         for k, v in load_file(str(fill_from)).items():
             k = k.removeprefix("model.")
             if k.startswith("nets.") and k.split(".")[1] in fill_maps:
                 tensors[k] = v
-        for m in fill_maps:
-            networks[m] = records.get(
-                m, {"steps": fill_steps, "elapsed_seconds": round(fill_seconds, 1), "from": str(fill_from)}
-            )
+        # an assembled file keeps its networks' own records
+        records = {m: {"from": str(fill_from), **r} for m, r in training_record(fill_meta).items()}
+        networks.update({m: records[m] for m in fill_maps})
     maps = [m for m in MAPS if m in networks]
     info = {
         "format": "matscan-weights/1",
@@ -300,6 +294,18 @@ def export_weights(
     save_file(tensors, str(tmp), metadata=info)
     tmp.replace(out)
     return out
+
+
+def training_record(meta: dict[str, str]) -> dict[str, dict[str, Any]]:
+    """Per network of a weights file or checkpoint: the steps and seconds of training
+    behind it and where it came from (an assembled file's ``networks``; otherwise the
+    file's own run, with the training of the weights it started from)."""
+    if "networks" in meta:
+        return json.loads(meta["networks"])
+    cfg = json.loads(meta.get("train_config") or meta["config"])
+    steps = int(meta.get("step", 0)) + int(meta.get("init_step", 0))
+    seconds = float(meta.get("elapsed_seconds", 0)) + float(meta.get("init_elapsed_seconds", 0))
+    return {m: {"steps": steps, "elapsed_seconds": round(seconds, 1)} for m in cfg["maps"]}
 
 
 def load_weights(path: str | Path) -> tuple[MapNets, dict[str, str]]:

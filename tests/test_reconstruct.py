@@ -10,7 +10,7 @@ from matscan.capture import load_capture
 from matscan.capture.virtual import CameraModel, simulate
 from matscan.cli import main
 from matscan.mapset import read_mapset
-from matscan.nets import PRESETS, MapNets
+from matscan.nets import MAPS, PRESETS, MapNets
 from matscan.reconstruct import ReconstructConfig, flat_start, predict_maps, reconstruct_capture, rerender_error
 from matscan.rig import builtin_rig
 from matscan.samples import sample_maps_path
@@ -231,3 +231,17 @@ def test_auto_refines_the_networks_maps_from_ten_photos_and_always_without_netwo
     assert "refine_s" not in reconstruct_capture(six, cfg, nets).timings
     assert "refine_s" in reconstruct_capture(ten, cfg, nets).timings
     assert "refine_s" in reconstruct_capture(six, cfg, None).timings
+
+
+def test_the_record_says_how_trained_each_network_is(tmp_path):
+    from matscan.train import TrainConfig, export_weights, train
+
+    cfg = TrainConfig(preset="tiny", crop=32, batch=1, val_every=0, workers=0, render_lights=1, steps=2)
+    train(cfg, tmp_path / "run", progress=False)
+    weights = export_weights(tmp_path / "run" / "checkpoint.safetensors", tmp_path / "w.safetensors")
+    _capture(tmp_path, size=16, lights=[0, 4, 8, 12, 16, 20], name="six")
+    args = ["reconstruct", str(tmp_path / "six"), "--out", str(tmp_path / "out"), "--model", str(weights)]
+    assert main([*args, "--refine", "off"]) == 0
+    model = json.loads((tmp_path / "out" / "matscan.json").read_text())["model"]
+    assert model["file"] == str(weights)
+    assert {m: r["steps"] for m, r in model["networks"].items()} == dict.fromkeys(MAPS, 2)

@@ -25,6 +25,7 @@ from matscan.train import (
     load_weights,
     save_checkpoint,
     train,
+    training_record,
 )
 
 CFG = TrainConfig(
@@ -161,9 +162,12 @@ def test_export_fills_the_networks_a_run_did_not_train(tmp_path):
         source = d_nets if name == "diffuse" else b_nets
         for pa, pb in zip(nets.nets[name].parameters(), source.nets[name].parameters(), strict=True):
             torch.testing.assert_close(pa, pb, rtol=0, atol=0)
-    record = json.loads(meta["networks"])
+    record = training_record(meta)
     assert record["diffuse"]["steps"] == 4 and record["normal"]["steps"] == 3
     assert record["normal"]["from"] == str(init)
+    # a run's own checkpoint counts the steps of the weights it started from
+    own = training_record(_metadata(tmp_path / "d" / CHECKPOINT))
+    assert own == {"diffuse": {"steps": 4, "elapsed_seconds": record["diffuse"]["elapsed_seconds"]}}
     # filling from an assembled file keeps the records of the networks taken from it
     train(d, tmp_path / "d", max_steps=1, progress=False)
     again = export_weights(tmp_path / "d" / CHECKPOINT, tmp_path / "w2.safetensors", fill_from=out)
