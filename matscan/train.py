@@ -303,9 +303,14 @@ def training_record(meta: dict[str, str]) -> dict[str, dict[str, Any]]:
     if "networks" in meta:
         return json.loads(meta["networks"])
     cfg = json.loads(meta.get("train_config") or meta["config"])
-    steps = int(meta.get("step", 0)) + int(meta.get("init_step", 0))
-    seconds = float(meta.get("elapsed_seconds", 0)) + float(meta.get("init_elapsed_seconds", 0))
+    steps, seconds = _trained(meta)
     return {m: {"steps": steps, "elapsed_seconds": round(seconds, 1)} for m in cfg["maps"]}
+
+
+def _trained(meta: dict[str, str]) -> tuple[int, float]:
+    """Steps and seconds of a file's run, with those of the weights it started from."""
+    steps = int(meta.get("step", 0)) + int(meta.get("init_step", 0))
+    return steps, float(meta.get("elapsed_seconds", 0)) + float(meta.get("init_elapsed_seconds", 0))
 
 
 def load_weights(path: str | Path) -> tuple[MapNets, dict[str, str]]:
@@ -416,9 +421,7 @@ def train(
         init_meta = _metadata(init)
         init_cfg = _config_of(init_meta, init)
         load_checkpoint(init, nets, None, subset=True)  # weights only: Adam starts afresh
-        # the training behind the init weights, their own init included
-        before = int(init_meta.get("step", 0)) + int(init_meta.get("init_step", 0))
-        seconds = float(init_meta.get("elapsed_seconds", 0)) + float(init_meta.get("init_elapsed_seconds", 0))
+        before, seconds = _trained(init_meta)  # the training behind the init weights, their own init included
         init_record = {
             "init": str(cfg.init),
             "init_step": str(before),
