@@ -14,8 +14,9 @@ s·B·W … (s+1)·B·W − 1 (B batch, W processes). So stopping and resuming f
 A run may start from trained weights (``init``: a checkpoint or an exported weights
 file) with a fresh Adam state: a second stage of training under a changed network
 config (say, another ``photo_statistic``). It records the training behind those
-weights (``init_step``, ``init_elapsed_seconds``, ``init_photo_statistic``) and draws
-the samples after the ones they saw: its step s uses the samples of step
+weights (``init_step``, ``init_elapsed_seconds``, ``init_photo_statistic``, and per
+network ``init_networks``, since an assembled file's networks had different training)
+and draws the samples after the ones they saw: its step s uses the samples of step
 ``init_step`` + s.
 
 Checkpoints and weights store the network config they were trained with
@@ -116,7 +117,7 @@ def build_nets(cfg: TrainConfig, net: NetConfig | None = None) -> MapNets:
 
 
 #: Metadata of the weights a run started from (``init``), carried into its checkpoints and exports.
-INIT_KEYS = ("init", "init_step", "init_elapsed_seconds", "init_photo_statistic")
+INIT_KEYS = ("init", "init_step", "init_elapsed_seconds", "init_photo_statistic", "init_networks")
 
 
 def net_config_of(meta: dict[str, str], cfg: TrainConfig) -> NetConfig:
@@ -299,12 +300,19 @@ def export_weights(
 def training_record(meta: dict[str, str]) -> dict[str, dict[str, Any]]:
     """Per network of a weights file or checkpoint: the steps and seconds of training
     behind it and where it came from (an assembled file's ``networks``; otherwise the
-    file's own run, with the training of the weights it started from)."""
+    file's own run, with the training each network had in the weights it started from)."""
     if "networks" in meta:
         return json.loads(meta["networks"])
     cfg = json.loads(meta.get("train_config") or meta["config"])
-    steps, seconds = _trained(meta)
-    return {m: {"steps": steps, "elapsed_seconds": round(seconds, 1)} for m in cfg["maps"]}
+    if "init_networks" not in meta:  # no init, or one written before per-network records
+        steps, seconds = _trained(meta)
+        return {m: {"steps": steps, "elapsed_seconds": round(seconds, 1)} for m in cfg["maps"]}
+    before = json.loads(meta["init_networks"])
+    step, seconds = int(meta["step"]), float(meta.get("elapsed_seconds", 0))
+    return {
+        m: {"steps": step + before[m]["steps"], "elapsed_seconds": round(seconds + before[m]["elapsed_seconds"], 1)}
+        for m in cfg["maps"]
+    }
 
 
 def _trained(meta: dict[str, str]) -> tuple[int, float]:
@@ -427,6 +435,7 @@ def train(
             "init_step": str(before),
             "init_elapsed_seconds": f"{seconds:.1f}",
             "init_photo_statistic": net_config_of(init_meta, init_cfg).photo_statistic,
+            "init_networks": json.dumps({m: r for m, r in training_record(init_meta).items() if m in cfg.maps}),
         }
     sample_offset = int(init_record.get("init_step", 0))  # the samples the init weights saw are skipped
 

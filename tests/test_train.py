@@ -173,6 +173,12 @@ def test_export_fills_the_networks_a_run_did_not_train(tmp_path):
     again = export_weights(tmp_path / "d" / CHECKPOINT, tmp_path / "w2.safetensors", fill_from=out)
     record = json.loads(load_weights(again)[1]["networks"])
     assert record["diffuse"]["steps"] == 5 and record["normal"] == {**record["normal"], "steps": 3, "from": str(init)}
+    # a run started from an assembled file adds its steps to each network's own (normal had 3, diffuse 5)
+    e = TrainConfig(**{**full.__dict__, "maps": ("diffuse", "normal"), "init": str(again)})
+    train(e, tmp_path / "e", max_steps=2, progress=False)
+    own = training_record(_metadata(tmp_path / "e" / CHECKPOINT))
+    assert (own["diffuse"]["steps"], own["normal"]["steps"]) == (7, 5)
+    assert own["normal"]["elapsed_seconds"] < own["diffuse"]["elapsed_seconds"]
 
 
 def test_files_without_a_net_config_load_with_the_median(tmp_path):

@@ -103,11 +103,22 @@ def main() -> int:
     rows = list(csv.DictReader((run / "log.csv").open())) if (run / "log.csv").is_file() else []
     hours = float(meta.get("elapsed_seconds", 0)) / 3600
     init_hours = float(meta.get("init_elapsed_seconds", 0)) / 3600
+    if "init_networks" in meta:  # per network: an assembled init file's networks had different training
+        before = "steps before this run: " + ", ".join(
+            f"{m} {r['steps']:,} ({r['elapsed_seconds'] / 3600:.2f} h)"
+            for m, r in json.loads(meta["init_networks"]).items()
+        )
+    else:
+        before = (
+            f"{meta.get('init_step')} steps, {init_hours:.2f} h, G_d's start the "
+            f"{meta.get('init_photo_statistic', '').replace('_', ' ')}"
+        )
     params = sum(p.numel() for p in nets.parameters())
     train_cmd = (
         f"matscan train --out {run} --minutes M"
         + (f" --maps {','.join(cfg['maps'])}" if len(cfg["maps"]) < 4 else "")
         + (f" --init {meta['init']}" if "init" in meta else "")
+        + (f" --lr {cfg['lr']:g}" if cfg["lr"] != 1e-4 else "")
     )
     lines = [
         "# Model card: `default` (dome24, `cpu` preset)",
@@ -136,8 +147,8 @@ def main() -> int:
         f"- This run: {meta['step']} steps ({int(meta['step']) * cfg['batch']:,} samples) of "
         f"{', '.join(cfg['maps'])} in {hours:.2f} h on 2 CPU cores (no GPU)"
         + (
-            f", started from `{meta['init']}` ({meta['init_step']} steps, {init_hours:.2f} h, G_d's start the "
-            f"{meta['init_photo_statistic'].replace('_', ' ')}) and drawing the samples after those."
+            f", started from `{meta['init']}` ({before}) and drawing the samples after the "
+            f"{meta['init_step']} steps behind it."
             if "init" in meta
             else "."
         ),
