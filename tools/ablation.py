@@ -6,12 +6,13 @@ Each run folder (trained with `matscan train --out runs/ablation/VARIANT --varia
 `matscan evaluate --methods nets:runs/ablation/VARIANT.safetensors`. Prints, as Markdown, the
 parameter count, seconds per step and the validation RMSE at the last step every run
 reached (the fixed procedural validation set, random light subsets), and, when given a
-reference run of the same configuration (--reference runs/dome24-cpu), how far the
+reference run of the same configuration (--reference runs/dome24-cpu-stage1, the first stage
+of the shipped weights, whose G_d started from the median as the ablation runs' did), how far the
 variant `four`'s validation is from the reference's at the same steps: training is seeded,
 so only floating-point summation order (thread counts) separates them.
 
 Run: .venv/bin/python tools/ablation.py runs/ablation/{four,one_encoder,global_track,no_global_skip}
-     [--reference runs/dome24-cpu]
+     [--reference runs/dome24-cpu-stage1]
 """
 
 from __future__ import annotations
