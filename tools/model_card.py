@@ -141,7 +141,9 @@ def main() -> int:
         f"- Data: procedural materials of `matscan.materials` (14 families, mixed as in Deschaintre et al. 2018), "
         f"{cfg['crop']}² crops anywhere in the dome24 field, random light subsets (Table 4 subsets half the time), "
         "calibration jitter, Poisson–Gaussian noise, 8-bit sRGB or 16-bit linear quantisation; rendered on the fly.",
-        f"- Optimiser: Adam, lr {cfg['lr']}, batch {cfg['batch']}, per-network gradient clipping at "
+        f"- Optimiser: Adam, lr {cfg['lr']:g}"
+        + (" in this run (the runs before it, with theirs: README.md, Development)" if "init" in meta else "")
+        + f", batch {cfg['batch']}, per-network gradient clipping at "
         f"{cfg['grad_clip']}; losses: map L1, rendering loss under {cfg['render_lights']} random novel lights "
         f"(λ_r = {cfg['lambda_render']:.4f}), 1 − SSIM for diffuse, cosine for normals.",
         f"- This run: {meta['step']} steps ({int(meta['step']) * cfg['batch']:,} samples) of "
