@@ -5,7 +5,7 @@ largest absolute and relative difference over the matched rows (time is left out
 the rows only one file has. Exit status 1 when a score differs by more than --tolerance
 (relative; differences under 1e-6 count as equal; default 1e-3), so this can gate a re-run.
 
-Run: .venv/bin/python tools/compare_results.py docs/results/study/results.json /tmp/rerun/results.json
+Run: .venv/bin/python tools/compare_results.py docs/results/current/results.json /tmp/rerun/results.json
 """
 
 from __future__ import annotations
@@ -19,7 +19,13 @@ KEYS = ("material", "encoding", "lights", "method")
 
 
 def load(path: Path) -> dict[tuple, dict]:
-    return {tuple(r[k] for k in KEYS): r for r in json.loads(path.read_text())["rows"]}
+    try:
+        rows = json.loads(path.read_text())["rows"]
+        return {tuple(r[k] for k in KEYS): r for r in rows}
+    except FileNotFoundError:
+        raise SystemExit(f"{path}: no such file") from None
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise SystemExit(f"{path}: not a matscan evaluate results.json ({type(e).__name__}: {e})") from None
 
 
 def main() -> int:
