@@ -11,7 +11,10 @@ intensity scales (and optional flat fields) from a grey card.
 
 A capture that names it is corrected on reading for reconstruction
 (:func:`apply_calibration`): colour matrix first, then each photo divided by its
-light's scale and flat field.
+light's scale and flat field. Every field is checked there (errors name the file
+and the field); plausible-but-wrong calibrations become warnings in the capture's
+``meta["warnings"]``. :func:`check_chart` and :func:`check_scales` give the
+warnings about a chart photo and about computed scales to ``matscan calibrate``.
 
 The ColorChecker is located by the user (the chart's four outer corners in pixel
 coordinates, or the whole photo when the chart fills it): an automatic detector
@@ -20,7 +23,8 @@ would need a second OpenCV build beside ours.
 
 from __future__ import annotations
 
-import json
+import re
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -32,8 +36,10 @@ from torch import Tensor
 from matscan.capture import Capture
 from matscan.color import srgb_to_linear
 from matscan.errors import MatscanError, input_error
+from matscan.jsonfile import check_file_name, check_number, check_object, check_vector, short_repr
 from matscan.materials.noise import blur
 from matscan.render import render, surface_points
+from matscan.rig import Rig
 
 CALIBRATION_FORMAT = "matscan-calibration/1"
 GREY_CARD = 0.18
@@ -73,35 +79,90 @@ def colorchecker_linear() -> Tensor:
     return srgb_to_linear(torch.tensor(COLORCHECKER_SRGB8, dtype=torch.float64) / 255).float()
 
 
+def _check_corners(corners: Sequence[Sequence[float]]) -> list[np.ndarray]:
+    """The four corners as float arrays; each must be two finite numbers."""
+    if len(corners) != 4:
+        raise MatscanError(f"corners: expected 4 (x, y) points, got {len(corners)}")
+    out = []
+    for i, c in enumerate(corners):
+        out.append(np.array(check_vector(list(c), 2, f"corners[{i}]"), dtype=np.float64))
+    return out
+
+
 def sample_patches(
-    photo: Tensor, corners: list[tuple[float, float]] | None = None, rows: int = 4, cols: int = 6, fraction: float = 0.5
+    photo: Tensor,
+    corners: Sequence[Sequence[float]] | None = None,
+    rows: int = 4,
+    cols: int = 6,
+    fraction: float = 0.5,
 ) -> Tensor:
     """Mean colour (rows·cols, 3) of each patch of a chart in a linear photo (3, H, W).
 
     ``corners``: the chart's outer corners (x = column, y = row) in the order
     top-left, top-right, bottom-right, bottom-left; the whole photo by default.
-    The central ``fraction`` of each patch is averaged.
+    The central ``fraction`` of each patch is averaged (5 × 5 samples). A sample
+    outside the photo is an error (the corners do not lie on the photo).
     """
     _, h, w = photo.shape
     if corners is None:
         corners = [(0, 0), (w, 0), (w, h), (0, h)]
-    if len(corners) != 4:
-        raise MatscanError(f"corners: expected 4 (x, y) points, got {len(corners)}")
-    tl, tr, br, bl = (np.array(c, dtype=np.float64) for c in corners)
+    tl, tr, br, bl = _check_corners(corners)
+    steps = np.linspace(-fraction / 2, fraction / 2, 5)
     out = []
     for r in range(rows):
         for c in range(cols):
             samples = []
-            for dv in np.linspace(-fraction / 2, fraction / 2, 5):
-                for du in np.linspace(-fraction / 2, fraction / 2, 5):
+            for dv in steps:
+                for du in steps:
                     u, v = (c + 0.5 + du) / cols, (r + 0.5 + dv) / rows
                     top = tl + (tr - tl) * u
                     bottom = bl + (br - bl) * u
                     x, y = top + (bottom - top) * v
-                    xi, yi = int(np.clip(x, 0, w - 1)), int(np.clip(y, 0, h - 1))
-                    samples.append(photo[:, yi, xi])
+                    if not (0 <= x < w and 0 <= y < h):
+                        raise MatscanError(
+                            f"corners: patch {r * cols + c + 1} of the chart falls at (x {x:.0f}, y {y:.0f}), "
+                            f"outside the {w}×{h} photo; give the chart's corners inside the photo"
+                        )
+                    samples.append(photo[:, int(y), int(x)])
             out.append(torch.stack(samples).mean(0))
     return torch.stack(out)
+
+
+#: A chart's patches are a colour chart when their chromaticities (r, g, b over their
+#: sum) spread by more than this; the ColorChecker's spread 0.6, a grey card's under 0.02.
+MIN_CHART_SPREAD = 0.1
+
+
+def check_chart(measured: Tensor) -> list[str]:
+    """Warnings (one line each, saying what to do) about patches sampled from a chart photo.
+
+    ``measured``: (24, 3) linear camera RGB of the ColorChecker's patches, row by row
+    (:func:`sample_patches`). Warns when the patches are black, when they are almost
+    without chroma (the photo shows no colour chart), and when the bottom row does not
+    run from white to black (corners in the wrong order). Empty when all is well.
+    """
+    if measured.shape != (len(COLORCHECKER_SRGB8), 3):
+        raise MatscanError(
+            f"measured: expected ({len(COLORCHECKER_SRGB8)}, 3) patch colours, got {tuple(measured.shape)}"
+        )
+    m = measured.double()
+    total = m.sum(dim=1)
+    if not torch.isfinite(m).all() or float(total.max()) <= 1e-6:
+        return ["the chart photo is black where the patches should be; check the exposure and --corners"]
+    chroma = m / total.clamp_min(1e-9)[:, None]
+    spread = float((chroma.max(dim=0).values - chroma.min(dim=0).values).max())
+    if spread < MIN_CHART_SPREAD:
+        return [
+            f"the photo shows no colour chart (its patches are nearly grey: chromaticity spread {spread:.3f}); "
+            "check --corners, or photograph a ColorChecker Classic"
+        ]
+    neutral = total[18:24]
+    if not bool((neutral[:-1] > neutral[1:]).all()):
+        return [
+            "the chart's bottom row does not run from white to black; give --corners in the order "
+            "top-left, top-right, bottom-right, bottom-left with the chart upright (white patch bottom-left)"
+        ]
+    return []
 
 
 def colour_matrix(measured: Tensor, reference: Tensor) -> Tensor:
@@ -111,12 +172,54 @@ def colour_matrix(measured: Tensor, reference: Tensor) -> Tensor:
 
 
 def weighted_median(values: Tensor, weights: Tensor) -> float:
-    """The minimiser s of Σ w_i |v_i − s| (for v = p/r, w = r: of Σ |p_i − s r_i|)."""
+    """The minimiser s of Σ w_i |v_i − s| (for v = p/r, w = r: of Σ |p_i − s r_i|).
+
+    ``values`` and ``weights`` are 1-D and non-empty (an empty input is an error).
+    """
+    if values.numel() == 0:
+        raise MatscanError("weighted_median: no values (every sample was masked out)")
     order = torch.argsort(values)
     v, w = values[order], weights[order]
     cum = torch.cumsum(w, 0)
     idx = int(torch.searchsorted(cum, cum[-1] / 2))
     return float(v[min(idx, len(v) - 1)])
+
+
+#: A light's scale outside this range is implausible (a warning says so); outside
+#: ``SCALE_LIMITS`` it is an error (the corrected photos would leave float32's range).
+SCALE_PLAUSIBLE = (1e-3, 1e3)
+SCALE_LIMITS = (1e-6, 1e6)
+
+
+def check_scales(scales: Mapping[str, float], source: str = "calibration") -> list[str]:
+    """Warnings (one line each) about implausible light scales (outside ``SCALE_PLAUSIBLE``).
+
+    ``scales`` maps a light index (as text) to its scale (photo = scale × model);
+    ``source`` names where they come from in the message.
+    """
+    low, high = SCALE_PLAUSIBLE
+    odd = {k: s for k, s in scales.items() if not low <= s <= high}
+    if not odd:
+        return []
+    shown = ", ".join(f"light {k}: {s:g}" for k, s in list(odd.items())[:4]) + (", …" if len(odd) > 4 else "")
+    return [
+        f"{source}: implausible light scale ({shown}; expected {low:g} to {high:g}); "
+        "check the exposure of the grey-card photos and recalibrate"
+    ]
+
+
+def _grey_scale(photo: Tensor, model: Tensor, saturated: Tensor, k: int) -> float:
+    """The scale of light ``k`` from its grey-card photo and rendering (each (3, H, W))."""
+    lit = model > 1e-4
+    if not bool(lit.any()):
+        raise MatscanError(f"calibrate: light {k} does not light the grey card (check the rig file)")
+    ok = (~saturated).expand_as(model) & lit
+    if not bool(ok.any()):
+        raise MatscanError(f"calibrate: every pixel saturated under light {k}; lower the exposure")
+    s = weighted_median(photo[ok] / model[ok], model[ok])
+    if not s > 0:
+        raise MatscanError(f"calibrate: the grey card is black under light {k}; check that the light fired")
+    return s
 
 
 def light_scales(
@@ -125,7 +228,11 @@ def light_scales(
     """Per-light intensity scale from photos of a grey card (a flat Lambertian of
     ``albedo``) under each light: the scale minimising the L1 distance between the
     photo and the rendering (the paper's 24 parameters); optionally the remaining
-    smooth spatial ratio as a flat field of mean 1."""
+    smooth spatial ratio as a flat field of mean 1.
+
+    A light under which every pixel is saturated (or the card black) is an error
+    naming it; :func:`check_scales` gives the warnings about implausible scales.
+    """
     h, w = grey.size
     pts = surface_points(grey.field_mm, (h, w))
     n = torch.zeros(3, h, w)
@@ -143,14 +250,13 @@ def light_scales(
                 grey.lights.select([i]),
                 pts,
             )[0]
-        ok = (~grey.saturated[i]).expand_as(model) & (model > 1e-4)
         photo = grey.images[i]
-        s = weighted_median((photo[ok] / model[ok]), model[ok])
+        s = _grey_scale(photo, model, grey.saturated[i], k)
         scales[str(k)] = s
         if flat_fields:
             ratio = (photo / (s * model).clamp_min(1e-4)).mean(0)
             ratio = blur(ratio, flat_sigma_px)
-            flats[str(k)] = (ratio / ratio.mean())[None]
+            flats[str(k)] = (ratio / ratio.mean().clamp_min(1e-12))[None]
     return scales, flats
 
 
@@ -171,39 +277,170 @@ def write_calibration(
             file = f"flat_{int(k):02d}.exr"
             write_image(path.parent / file, t.permute(1, 2, 0).numpy(), bits=32)
             doc["flat_fields"][k] = file
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-    tmp.replace(path)
+    from matscan.atomic import write_text
+    from matscan.jsonfile import dumps
+
+    write_text(path, dumps(doc, str(path)))
     return doc
+
+
+_CALIBRATION_KEYS = {
+    "format": True,
+    "colour_matrix": False,
+    "light_scales": False,
+    "flat_fields": False,
+    "grey_albedo": False,
+}
+#: The largest magnitude of a colour matrix entry (real ones are within ±3).
+MAX_MATRIX_ENTRY = 1e3
+_LIGHT_KEY = re.compile(r"0|[1-9][0-9]{0,8}")
+
+
+def _where(capture: Capture) -> tuple[str, str, str]:
+    """How messages name the calibration (``place``), the start of a field's name
+    (``prefix``: ``place`` then the field follows), and how warnings name it."""
+    if capture.calibration_file is not None:
+        place = str(capture.calibration_file)
+        return place, f"{place}: ", capture.calibration_file.name
+    if capture.folder is not None:
+        place = f"{capture.folder / 'capture.json'}: calibration"
+        return place, f"{place}.", "capture.json's calibration"
+    return "calibration", "calibration.", "the calibration"
+
+
+def _light_keyed(value: Any, where: str, rig: Rig) -> dict[int, Any]:
+    """An object keyed by light indices of ``rig`` (``"0"``, ``"17"``), as {index: value}."""
+    out = {}
+    for key, item in check_object(value, where).items():
+        if not _LIGHT_KEY.fullmatch(key) or int(key) >= len(rig.lights):
+            raise MatscanError(
+                f"{where}: key {short_repr(key)} is not a light of rig {rig.name!r} (0 to {len(rig.lights) - 1})"
+            )
+        out[int(key)] = item
+    return out
+
+
+def _colour_matrix(value: Any, where: str) -> Tensor:
+    """The 3 × 3 colour matrix, every entry finite and within ±``MAX_MATRIX_ENTRY``."""
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise MatscanError(f"{where}: must be 3 × 3 (three rows of three numbers), got {short_repr(value)}")
+    rows = []
+    for i, row in enumerate(value):
+        if not isinstance(row, (list, tuple)) or len(row) != 3:
+            raise MatscanError(f"{where}: must be 3 × 3 (row {i} is {short_repr(row)})")
+        rows.append(check_vector(row, 3, f"{where}[{i}]", -MAX_MATRIX_ENTRY, MAX_MATRIX_ENTRY))
+    return torch.tensor(rows, dtype=torch.float32)
+
+
+def _scales(value: Any, where: str, rig: Rig) -> dict[int, float]:
+    """Per-light scales: finite, positive, within ``SCALE_LIMITS``."""
+    scales = {}
+    for k, s in _light_keyed(value, where, rig).items():
+        field = f"{where}['{k}']"
+        s = check_number(s, field)
+        if s <= 0:
+            raise MatscanError(
+                f"{field}: light {k} has scale {s:g}; a scale must be positive (photo = scale × model): recalibrate"
+            )
+        check_number(s, field, *SCALE_LIMITS)
+        scales[k] = s
+    return scales
+
+
+def _flat_field(path: Path, size: tuple[int, int]) -> Tensor:
+    """A flat field (1 or 3, H, W) read from ``path``: finite, the photos' size."""
+    from matscan.imagefile import read_image
+
+    px = read_image(path).pixels
+    if px.shape[2] not in (1, 3):
+        raise input_error(path, f"a flat field has 1 or 3 channels, this one {px.shape[2]}")
+    flat = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).float()
+    if tuple(flat.shape[-2:]) != size:
+        raise input_error(
+            path, f"flat field is {flat.shape[-1]}×{flat.shape[-2]} pixels but the photos are {size[1]}×{size[0]}"
+        )
+    if not torch.isfinite(flat).all():
+        raise input_error(path, "flat field holds NaN or infinite values")
+    return flat.clamp_min(1e-3)
+
+
+def _flat_files(value: Any, where: str, capture: Capture) -> dict[int, Path]:
+    """Per-light flat-field files (beside the calibration file, or in the capture folder)."""
+    base = capture.calibration_file.parent if capture.calibration_file is not None else capture.folder
+    files = {}
+    for k, name in _light_keyed(value, where, capture.rig).items():
+        name = check_file_name(name, f"{where}['{k}']")
+        if base is None:
+            raise MatscanError(f"{where}['{k}']: a flat-field file needs a capture folder to be found in")
+        if not (base / name).is_file():
+            raise MatscanError(f"{where}['{k}']: no such file {short_repr(str(base / name))}")
+        files[k] = base / name
+    return files
+
+
+def _coverage_warning(scales: dict[int, float], capture: Capture, name: str) -> list[str]:
+    """A warning naming the capture's lights that have no scale."""
+    missing = sorted({k for k in capture.light_indices if k is not None and k not in scales})
+    if not missing:
+        return []
+    return [
+        f"{_light_list(missing)} no scale in {name}; they are used uncalibrated — "
+        "recalibrate with a grey card under every light"
+    ]
+
+
+def _light_list(indices: list[int]) -> str:
+    """``lights 0, 6..23 have`` / ``light 4 has`` for sorted indices."""
+    runs: list[list[int]] = []
+    for k in indices:
+        if runs and k == runs[-1][-1] + 1:
+            runs[-1].append(k)
+        else:
+            runs.append([k])
+    text = ", ".join(f"{r[0]}..{r[-1]}" if len(r) > 2 else ", ".join(map(str, r)) for r in runs)
+    return f"light {text} has" if len(indices) == 1 else f"lights {text} have"
 
 
 def apply_calibration(capture: Capture) -> Capture:
     """The capture with its calibration applied (colour matrix, then per-light scale
-    and flat field); unchanged when it has none."""
+    and flat field); unchanged when it has none.
+
+    Every field is checked first (errors name the calibration file or
+    ``capture.json: calibration`` and the field): ``colour_matrix`` 3 × 3 finite;
+    ``light_scales`` keyed by lights of the rig, each finite and positive;
+    ``flat_fields`` keyed by lights, naming readable files of the photos' size.
+    Plausible-but-wrong calibrations (scales for only some of the capture's lights,
+    implausible scales) are appended as one-line warnings to the result's
+    ``meta["warnings"]``.
+    """
     cal = capture.calibration
-    if not cal:
+    if cal is None:
         return capture
-    where = (capture.folder / "capture.json") if capture.folder else "calibration"
-    if cal.get("format") != CALIBRATION_FORMAT:
-        raise input_error(where, f"calibration: format must be {CALIBRATION_FORMAT!r}")
+    place, prefix, name = _where(capture)
+    check_object(cal, place, _CALIBRATION_KEYS)
+    if cal["format"] != CALIBRATION_FORMAT:
+        raise MatscanError(f"{prefix}format: must be {CALIBRATION_FORMAT!r}, got {short_repr(cal['format'])}")
+    if "grey_albedo" in cal:
+        check_number(cal["grey_albedo"], f"{prefix}grey_albedo", 0.0, 1.0, positive=True)
+    matrix = _colour_matrix(cal["colour_matrix"], f"{prefix}colour_matrix") if "colour_matrix" in cal else None
+    scales = _scales(cal["light_scales"], f"{prefix}light_scales", capture.rig) if "light_scales" in cal else {}
+    flats = _flat_files(cal["flat_fields"], f"{prefix}flat_fields", capture) if "flat_fields" in cal else {}
+    warnings = check_scales({str(k): s for k, s in scales.items()}, name)
+    if "light_scales" in cal:
+        warnings += _coverage_warning(scales, capture, name)
+
     images = capture.images
-    if "colour_matrix" in cal:
-        m = torch.tensor(cal["colour_matrix"], dtype=torch.float32)
-        if m.shape != (3, 3):
-            raise input_error(where, "calibration: colour_matrix must be 3 × 3")
-        images = torch.einsum("ij,njhw->nihw", m, images)
-    scales = cal.get("light_scales", {})
-    flats = cal.get("flat_fields", {})
+    if matrix is not None:
+        images = torch.einsum("ij,njhw->nihw", matrix, images)
     out = []
     for img, k in zip(images, capture.light_indices, strict=True):
-        if k is not None and str(k) in scales:
-            img = img / float(scales[str(k)])
-        if k is not None and str(k) in flats and capture.folder is not None:
-            from matscan.imagefile import read_image
-
-            flat = torch.from_numpy(read_image(capture.folder / flats[str(k)]).pixels).permute(2, 0, 1)
-            if flat.shape[-2:] != img.shape[-2:]:
-                raise input_error(capture.folder / flats[str(k)], "flat field size differs from the photos")
-            img = img / flat.clamp_min(1e-3)
+        if k is not None and k in scales:
+            img = img / scales[k]
+        if k is not None and k in flats:
+            img = img / _flat_field(flats[k], capture.size)
         out.append(img)
-    return replace(capture, images=torch.stack(out).clamp_min(0))
+    corrected = torch.stack(out).clamp_min(0)
+    if not torch.isfinite(corrected).all():
+        raise MatscanError(f"{place}: the calibration makes the photos overflow; check its values")
+    meta = {**capture.meta, "warnings": [*capture.meta.get("warnings", []), *warnings]}
+    return replace(capture, images=corrected, meta=meta)

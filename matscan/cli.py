@@ -6,6 +6,8 @@ Bad input exits with status 2 and one line ``matscan: error: <file>: <problem>``
 from __future__ import annotations
 
 import argparse
+import math
+import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -37,7 +39,52 @@ def _vector(text: str, n: int, name: str) -> tuple[float, ...]:
         raise MatscanError(f"{name}: {text!r} is not {n} comma-separated numbers") from None
     if len(values) != n:
         raise MatscanError(f"{name}: {text!r} is not {n} comma-separated numbers")
+    if not all(math.isfinite(v) for v in values):
+        raise MatscanError(f"{name}: {text!r} holds a number that is not finite")
     return values
+
+
+def _number(kind: type, low: float | None = None, high: float | None = None, low_open: bool = False):
+    """An argparse type: a finite int or float within [low, high] (low excluded if ``low_open``)."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+        if low is not None and (value <= low if low_open else value < low):
+            raise argparse.ArgumentTypeError(f"{text} must be {'above' if low_open else 'at least'} {low:g}")
+        if high is not None and value > high:
+            raise argparse.ArgumentTypeError(f"{text} must be at most {high:g}")
+        return value
+
+    return parse
+
+
+positive_int = _number(int, 1)
+non_negative_int = _number(int, 0)
+positive_float = _number(float, 0.0, low_open=True)
+non_negative_float = _number(float, 0.0)
+finite_float = _number(float)
+
+#: Options whose value is a comma-separated vector that may start with a minus sign
+#: (argparse would take "-50,0,150" for an option).
+VECTOR_OPTIONS = ("--light", "--corners")
+
+
+def _join_vectors(argv: Sequence[str]) -> list[str]:
+    """``--light -50,0,150`` → ``--light=-50,0,150``."""
+    out: list[str] = []
+    it = iter(argv)
+    for arg in it:
+        if arg in VECTOR_OPTIONS:
+            value = next(it, None)
+            out.append(arg if value is None else f"{arg}={value}")
+        else:
+            out.append(arg)
+    return out
 
 
 def cmd_simulate(args: argparse.Namespace) -> str:
@@ -47,7 +94,8 @@ def cmd_simulate(args: argparse.Namespace) -> str:
 
     t0 = time.perf_counter()
     rig = resolve_rig(args.rig)
-    maps = read_mapset(_maps_arg(args.maps))
+    maps_path = _maps_arg(args.maps)
+    maps = read_mapset(maps_path)
     bits = args.bits or (8 if args.encoding == "srgb" else 32)
     camera = CameraModel(
         exposure=args.exposure, read_noise=args.noise, full_well=args.full_well, encoding=args.encoding, bits=bits
@@ -63,6 +111,8 @@ def cmd_simulate(args: argparse.Namespace) -> str:
         size=args.size,
         overwrite=args.overwrite,
         progress=True,
+        inputs=[maps_path] + ([Path(args.rig)] if args.rig.endswith(".json") else []),
+        overwrite_any=args.overwrite_any,
     )
     size = args.size or maps.size[0]
     count = len(default_flash_geometry()) if rig.per_image_geometry else len(lights or ())
@@ -85,7 +135,14 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         directx_normals=args.directx_normals,
         validate=args.validate,
     )
-    rec = reconstruct(_capture_arg(args.capture), args.out, cfg, overwrite=args.overwrite, progress=True)
+    rec = reconstruct(
+        _capture_arg(args.capture),
+        args.out,
+        cfg,
+        overwrite=args.overwrite,
+        progress=True,
+        overwrite_any=args.overwrite_any,
+    )
     for warning in rec["warnings"]:
         print(f"matscan: warning: {warning}", file=sys.stderr)
     w, h = rec["size_px"]
@@ -99,34 +156,58 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> str:
+    from matscan.outputs import capture_inputs, check_destination, claim_output
+
+    if not args.grey and not args.chart:
+        raise MatscanError("calibrate: give --grey CAPTURE (grey card under each light) and/or --chart PHOTO")
+    corners = None
+    if args.corners:
+        v = _vector(args.corners, 8, "--corners")
+        corners = [(v[0], v[1]), (v[2], v[3]), (v[4], v[5]), (v[6], v[7])]
+    inputs = ([Path(args.chart)] if args.chart else []) + (capture_inputs(args.grey) if args.grey else [])
+    with claim_output(args.out, "calibrate", inputs, kind="file", overwrite=args.overwrite) as claim:
+        if args.flat_fields and args.grey:  # the flat-field files beside it are outputs too
+            for flat in sorted(claim.path.parent.glob("flat_*.exr")):
+                check_destination(flat, inputs, "file", args.overwrite)
+        return _calibrate(args, claim.path, corners)
+
+
+def _calibrate(args: argparse.Namespace, out: Path, corners: list[tuple[float, float]] | None) -> str:
     import torch
 
-    from matscan.calibrate import colorchecker_linear, colour_matrix, light_scales, sample_patches, write_calibration
+    from matscan.calibrate import (
+        check_chart,
+        check_scales,
+        colorchecker_linear,
+        colour_matrix,
+        light_scales,
+        sample_patches,
+        write_calibration,
+    )
     from matscan.capture import load_capture
     from matscan.color import srgb_to_linear
     from matscan.imagefile import read_image
 
-    if not args.grey and not args.chart:
-        raise MatscanError("calibrate: give --grey CAPTURE (grey card under each light) and/or --chart PHOTO")
     matrix = scales = flats = None
-    parts = []
+    parts: list[str] = []
+    warnings: list[str] = []
     if args.chart:
         img = read_image(args.chart)
         photo = torch.from_numpy(img.pixels[:, :, :3]).permute(2, 0, 1).float()
         if img.kind == "int" and args.chart_encoding == "srgb":
             photo = srgb_to_linear(photo)
-        corners = None
-        if args.corners:
-            v = _vector(args.corners, 8, "--corners")
-            corners = [(v[0], v[1]), (v[2], v[3]), (v[4], v[5]), (v[6], v[7])]
         measured = sample_patches(photo, corners)
+        warnings += check_chart(measured)
         matrix = colour_matrix(measured, colorchecker_linear())
         residual = float((measured @ matrix.T - colorchecker_linear()).abs().mean())
         parts.append(f"colour matrix (mean patch error {residual:.4f})")
     if args.grey:
         scales, flats = light_scales(load_capture(args.grey), flat_fields=args.flat_fields)
+        warnings += check_scales(scales, str(out))
         parts.append(f"{len(scales)} light scales ({min(scales.values()):.3f} to {max(scales.values()):.3f})")
-    write_calibration(Path(args.out), matrix, scales, flats)
+    write_calibration(out, matrix, scales, flats)
+    for warning in warnings:
+        print(f"matscan: warning: {warning}", file=sys.stderr)
     return f"calibrate: wrote {args.out}: " + ", ".join(parts)
 
 
@@ -137,6 +218,7 @@ def cmd_evaluate(args: argparse.Namespace) -> str:
     from matscan.materials.procedural import random_material
 
     materials = []
+    inputs = []
     for spec in args.mapsets:
         if spec.startswith("procedural:"):
             try:
@@ -151,18 +233,45 @@ def cmd_evaluate(args: argparse.Namespace) -> str:
         else:
             from matscan.capture.virtual import resize_maps
 
-            maps = read_any(_maps_arg(spec))
+            inputs.append(_maps_arg(spec))
+            maps = read_any(inputs[-1])
             materials.append((Path(spec).name, resize_maps(maps, args.size) if maps.size[0] != args.size else maps))
     lights = [s.strip() for s in args.lights.split(",")]
     methods = [m.strip() for m in args.methods.split(",")]
     encodings = [e.strip() for e in args.encodings.split(",")]
     res = evaluate_to_folder(
-        materials, Path(args.out), lights, methods, encodings, args.steps, args.overwrite, progress=True, jobs=args.jobs
+        materials,
+        Path(args.out),
+        lights,
+        methods,
+        encodings,
+        args.steps,
+        args.overwrite,
+        progress=True,
+        jobs=args.jobs,
+        inputs=inputs,
+        overwrite_any=args.overwrite_any,
     )
     return f"evaluate: {res['rows']} reconstructions scored into {args.out}/results.md in {res['seconds']:.0f} s"
 
 
 def cmd_render(args: argparse.Namespace) -> str:
+    from matscan.outputs import claim_output
+
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    if out.suffix.lower() not in (".png", ".exr"):
+        raise MatscanError(f"--out: {out.name}: write .png (sRGB, 8-bit) or .exr (linear float)")
+    pos = _vector(args.light, 3, "--light")
+    if pos[2] <= 0:
+        raise MatscanError(f"--light: z = {pos[2]:g} is not above the sample plane (z > 0)")
+    maps_path = _maps_arg(args.maps)
+    inputs = [maps_path] + ([Path(args.rig)] if args.rig.endswith(".json") else [])
+    with claim_output(out, "render", inputs, kind="file", overwrite=args.overwrite):
+        return _render(args, maps_path, pos, out, t0)
+
+
+def _render(args: argparse.Namespace, maps_path: Path, pos: tuple[float, ...], out: Path, t0: float) -> str:
     import numpy as np
 
     from matscan.color import linear_to_srgb
@@ -171,12 +280,8 @@ def cmd_render(args: argparse.Namespace) -> str:
     from matscan.render import render, surface_points
     from matscan.rig import LightSet, resolve_rig
 
-    t0 = time.perf_counter()
     rig = resolve_rig(args.rig)
-    maps = read_mapset(_maps_arg(args.maps))
-    pos = _vector(args.light, 3, "--light")
-    if pos[2] <= 0:
-        raise MatscanError(f"--light: z = {pos[2]:g} is not above the sample plane (z > 0)")
+    maps = read_mapset(maps_path)
     lights = LightSet.points([pos], rig.camera.position_mm, rig.reference_distance_mm, args.intensity, args.exponent)
     points = surface_points(rig.field_mm, maps.size)
     img = render(maps.diffuse, maps.specular, maps.roughness, maps.normal, lights, points)[0]
@@ -184,14 +289,10 @@ def cmd_render(args: argparse.Namespace) -> str:
         img = img + maps.emissive
     if maps.alpha is not None:
         img = img * maps.alpha
-    out = Path(args.out)
-    suffix = out.suffix.lower()
-    if suffix == ".exr":
+    if out.suffix.lower() == ".exr":
         write_image(out, img.permute(1, 2, 0).numpy(), bits=32)
-    elif suffix == ".png":
-        write_image(out, linear_to_srgb(img.clamp(0, 1)).permute(1, 2, 0).numpy(), bits=8)
     else:
-        raise MatscanError(f"--out: {out.name}: write .png (sRGB, 8-bit) or .exr (linear float)")
+        write_image(out, linear_to_srgb(img.clamp(0, 1)).permute(1, 2, 0).numpy(), bits=8)
     peak = float(np.percentile(img.numpy(), 99.9))
     return (
         f"render: wrote {out} ({maps.size[1]}×{maps.size[0]}, light at {pos} mm, "
@@ -200,12 +301,20 @@ def cmd_render(args: argparse.Namespace) -> str:
 
 
 def cmd_sheet(args: argparse.Namespace) -> str:
+    from matscan.outputs import capture_inputs, claim_output
+
+    source = _capture_arg(args.folder)
+    inputs = capture_inputs(source) + (capture_inputs(_maps_arg(args.maps)) if args.maps else [])
+    with claim_output(args.out, "sheet", inputs, kind="file", overwrite=args.overwrite):
+        return _sheet(args, source)
+
+
+def _sheet(args: argparse.Namespace, source: Path) -> str:
     from matscan.capture import load_capture
     from matscan.mapset import read_mapset
     from matscan.report.sheet import capture_tiles, contact_sheet, map_tiles, save_sheet
 
     tiles = []
-    source = _capture_arg(args.folder)
     if (source / "capture.json").is_file():
         cap = load_capture(source)
         labels = [
@@ -236,6 +345,7 @@ def cmd_synth(args: argparse.Namespace) -> str:
         lights=args.lights,
         overwrite=args.overwrite,
         progress=True,
+        overwrite_any=args.overwrite_any,
     )
     seconds = time.perf_counter() - t0
     return f"synth: wrote {args.count} materials with captures and {out}/contact_sheet.png in {seconds:.1f} s"
@@ -268,6 +378,9 @@ def cmd_train(args: argparse.Namespace) -> str:
         "val_count",
         "checkpoint_minutes",
         "init",
+        "prior",
+        "device",
+        "prefetch",
     ):
         value = getattr(args, key)
         if value is not None:
@@ -280,10 +393,15 @@ def cmd_train(args: argparse.Namespace) -> str:
     return f"train: {args.out} at step {res['step']} ({res['seconds'] / 3600:.2f} h in all); {val}"
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line (no usage block), exit status 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="matscan", description="Photographs of a flat material under known lights → material maps."
-    )
+    parser = _Parser(prog="matscan", description="Photographs of a flat material under known lights → material maps.")
     parser.add_argument("--version", action="version", version=f"matscan {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -292,18 +410,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to write")
     p.add_argument("--rig", default="dome24", help="built-in rig name or rig .json file (default dome24)")
     p.add_argument("--lights", default=None, help="named subset (24, 6, …) or indices like 0,4,8 (default all)")
-    p.add_argument("--size", type=int, default=None, help="resample maps to SIZE×SIZE pixels first")
+    p.add_argument("--size", type=positive_int, default=None, help="resample maps to SIZE×SIZE pixels first")
     p.add_argument(
         "--noise",
-        type=float,
+        type=non_negative_float,
         default=0.002,
         metavar="SIGMA",
         help="read noise std (fraction of full scale); >0 also adds photon shot noise; 0 = noise-free (default 0.002)",
     )
     p.add_argument(
-        "--full-well", type=float, default=20000.0, help="electrons at full scale, sets shot noise (default 20000)"
+        "--full-well",
+        type=positive_float,
+        default=20000.0,
+        help="electrons at full scale, sets shot noise (default 20000)",
     )
-    p.add_argument("--exposure", type=float, default=1.0, help="radiance multiplier before the sensor (default 1)")
+    p.add_argument(
+        "--exposure", type=positive_float, default=1.0, help="radiance multiplier before the sensor (default 1)"
+    )
     p.add_argument("--encoding", choices=["srgb", "linear"], default="srgb", help="file encoding (default srgb)")
     p.add_argument(
         "--bits",
@@ -312,8 +435,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="8/16-bit PNG, or 32 = float EXR (default 8 for srgb, 32 for linear)",
     )
-    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="noise seed (default 0)")
+    _overwrite_folder(p)
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("reconstruct", help="capture → maps (networks, then refinement by inverse rendering)")
@@ -327,12 +450,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="refine by inverse rendering (auto: with 10 or more photos, where it helps the networks' maps "
         "(docs/results.md), and always without networks)",
     )
-    p.add_argument("--steps", type=int, default=150, help="refinement steps per tile (default 150)")
-    p.add_argument("--tile", type=int, default=512, help="network tile size in pixels (default 512)")
+    p.add_argument("--steps", type=positive_int, default=150, help="refinement steps per tile (default 150)")
+    p.add_argument("--tile", type=_number(int, 16), default=512, help="network tile size in pixels (default 512)")
     p.add_argument("--emissive", action="store_true", help="also fit an emissive map (fluorescent inks)")
     p.add_argument(
         "--validate",
-        type=int,
+        type=non_negative_int,
         default=0,
         metavar="K",
         help="leave K photos out, reconstruct, and report their re-rendering error",
@@ -344,7 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also write normal_directx.png (green flipped)",
     )
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    _overwrite_folder(p)
     p.set_defaults(func=cmd_reconstruct)
 
     p = sub.add_parser("calibrate", help="write calibration.json from a ColorChecker photo and/or a grey card")
@@ -359,6 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="X,Y,…",
         help="chart corners TL,TR,BR,BL as 8 numbers in pixels (default: the chart fills the photo)",
     )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing calibration file")
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("evaluate", help="simulate, reconstruct and score map sets (the accuracy study)")
@@ -375,17 +499,19 @@ def build_parser() -> argparse.ArgumentParser:
         default="baseline,nets,nets+refine,fit",
         help="baseline, nets, nets+refine, fit, or nets:FILE / nets+refine:FILE for other weights",
     )
-    p.add_argument("--jobs", type=int, default=1, help="worker processes, one capture each at a time (default 1)")
+    p.add_argument(
+        "--jobs", type=positive_int, default=1, help="worker processes, one capture each at a time (default 1)"
+    )
     p.add_argument("--encodings", default="srgb8,linear16", help="capture encodings: srgb8, linear16")
     p.add_argument(
         "--size",
-        type=int,
+        type=_number(int, 8),
         default=256,
         help="material size in pixels, covering the rig field (default 256: 0.47 mm a pixel on dome24, the coarse end "
         "of the scales the networks are trained on)",
     )
-    p.add_argument("--steps", type=int, default=150, help="refinement steps (default 150)")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--steps", type=positive_int, default=150, help="refinement steps (default 150)")
+    _overwrite_folder(p)
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("render", help="render a map set under one point light")
@@ -393,19 +519,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="IMAGE", help=".png (sRGB 8-bit) or .exr (linear float)")
     p.add_argument("--light", required=True, metavar="X,Y,Z", help="light position in mm (sample frame)")
     p.add_argument("--rig", default="dome24", help="rig giving camera, field and reference distance")
-    p.add_argument("--intensity", type=float, default=1.0, help="light intensity (default 1)")
-    p.add_argument("--exponent", type=float, default=0.0, help="emission exponent m (default 0, isotropic)")
+    p.add_argument("--intensity", type=non_negative_float, default=1.0, help="light intensity (default 1)")
+    p.add_argument(
+        "--exponent", type=non_negative_float, default=0.0, help="emission exponent m (default 0, isotropic)"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing image")
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("synth", help="write procedural materials, their captures and a contact sheet")
     p.add_argument("--out", required=True, help="folder to write")
-    p.add_argument("--count", type=int, required=True, help="how many materials")
-    p.add_argument("--size", type=int, default=256, help="map size in pixels (default 256)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--count", type=positive_int, required=True, help="how many materials")
+    p.add_argument("--size", type=_number(int, 8), default=256, help="map size in pixels (default 256)")
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--family", default=None, help="one family only (default: drawn by the prior's weights)")
     p.add_argument("--rig", default="dome24")
     p.add_argument("--lights", default=None, help="subset of lights to photograph (default all)")
-    p.add_argument("--overwrite", action="store_true")
+    _overwrite_folder(p)
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("train", help="train the map networks (resumes a run folder that has a checkpoint)")
@@ -415,47 +544,87 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--variant", default=None, help="four, one_encoder, global_track, no_global_skip")
     p.add_argument("--maps", default=None, help="train only these networks, e.g. diffuse,normal")
     p.add_argument("--rig", default=None)
-    p.add_argument("--crop", type=int, default=None)
-    p.add_argument("--batch", type=int, default=None)
-    p.add_argument("--lr", type=float, default=None)
-    p.add_argument("--steps", type=int, default=None, help="total steps of the run")
-    p.add_argument("--render-lights", dest="render_lights", type=int, default=None)
-    p.add_argument("--workers", type=int, default=None, help="data worker processes")
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--val-every", dest="val_every", type=int, default=None)
-    p.add_argument("--val-count", dest="val_count", type=int, default=None)
-    p.add_argument("--checkpoint-minutes", dest="checkpoint_minutes", type=float, default=None)
+    p.add_argument("--crop", type=_number(int, 16), default=None)
+    p.add_argument("--batch", type=positive_int, default=None)
+    p.add_argument("--lr", type=positive_float, default=None)
+    p.add_argument("--steps", type=positive_int, default=None, help="total steps of the run")
+    p.add_argument("--render-lights", dest="render_lights", type=positive_int, default=None)
+    p.add_argument("--workers", type=non_negative_int, default=None, help="data worker processes")
+    p.add_argument("--seed", type=non_negative_int, default=None)
+    p.add_argument("--val-every", dest="val_every", type=non_negative_int, default=None)
+    p.add_argument("--val-count", dest="val_count", type=positive_int, default=None)
+    p.add_argument("--checkpoint-minutes", dest="checkpoint_minutes", type=positive_float, default=None)
     p.add_argument(
         "--init",
         default=None,
         metavar="WEIGHTS",
         help="start a new run from trained weights (checkpoint or exported file), with a fresh optimiser",
     )
-    p.add_argument("--max-steps", dest="max_steps", type=int, default=None, help="stop after this many more steps")
-    p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
+    p.add_argument(
+        "--prior",
+        default=None,
+        help="material prior: v1 (what the shipped weights saw), v2 (adds relief, varying specular, dark glossy)",
+    )
+    p.add_argument("--device", default=None, help="auto (default: cuda when there is one), cpu, cuda, cuda:N")
+    p.add_argument("--prefetch", type=positive_int, default=None, help="batches each data worker prepares ahead")
+    p.add_argument(
+        "--max-steps", dest="max_steps", type=non_negative_int, default=None, help="stop after this many more steps"
+    )
+    p.add_argument("--minutes", type=positive_float, default=None, help="stop after this much wall time")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")
     p.add_argument("folder", metavar="FOLDER", help="capture or map set folder (or @sample)")
     p.add_argument("--maps", default=None, help="also show this map set (folder or @sample)")
     p.add_argument("--out", required=True, help="PNG to write")
-    p.add_argument("--columns", type=int, default=None)
+    p.add_argument("--columns", type=positive_int, default=None)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing PNG")
     p.set_defaults(func=cmd_sheet)
     return parser
 
 
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _terminate(signum: int, frame: object) -> None:
+    """SIGTERM ends a command as Ctrl-C does: temporaries removed, outputs untouched."""
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_vectors(sys.argv[1:] if argv is None else argv))
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         print(args.func(args))
     except MatscanError as exc:
-        print(f"matscan: error: {exc}", file=sys.stderr)
+        print(f"matscan: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file system refusal the checks could not foresee (a full disk mid-write)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"matscan: error: {_one_line(where + (exc.strerror or str(exc)))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("matscan: interrupted", file=sys.stderr)
+        print("matscan: interrupted; nothing was written", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+def _overwrite_folder(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing output folder that holds a previous matscan output (never an input)",
+    )
+    p.add_argument(
+        "--overwrite-any",
+        dest="overwrite_any",
+        action="store_true",
+        help="with --overwrite: replace the folder even if it holds files matscan did not write (they are deleted)",
+    )
 
 
 if __name__ == "__main__":

@@ -17,9 +17,11 @@ index      () int64              the sample's index
 How a sample is made (all randomness from (seed, i), so any worker gives the
 same sample for the same index):
 
-1. a material: procedural (:mod:`matscan.materials.procedural`) or from map
-   sets on disk; with probability ``mix_prob`` two are mixed as in Deschaintre et
-   al. 2018 (maps blended, here either by one weight or by a smooth noise mask);
+1. a material: procedural (:mod:`matscan.materials.procedural`, from the material
+   prior ``prior``: "v1", the default, draws the samples every earlier run drew;
+   "v2" adds strong relief, varying specular and roughness, and dark gloss) or from
+   map sets on disk; with probability ``mix_prob`` two are mixed as in Deschaintre
+   et al. 2018 (maps blended, here either by one weight or by a smooth noise mask);
 2. a physical scale (mm per pixel, log-uniform in ``mm_per_px``) and a place:
    the crop sits anywhere in the rig's sample field and is rendered at its true
    world position, so it sees the rig's real light and view directions there;
@@ -46,7 +48,7 @@ from torch.utils.data import Dataset
 from matscan.capture.virtual import CameraModel, apply_camera
 from matscan.mapset import MapSet, normalize_normals
 from matscan.materials.noise import smoothstep, spectral_noise
-from matscan.materials.procedural import random_material
+from matscan.materials.procedural import check_prior, random_material
 from matscan.render import render, surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
 
@@ -75,6 +77,10 @@ class DataConfig:
     augment: bool = True
     seed: int = 0
     compile: bool = True  # render with the fused kernel (built once per worker process)
+    prior: str = "v1"  # the procedural material prior's version (matscan.materials.procedural.PRIORS)
+
+    def __post_init__(self) -> None:
+        check_prior(self.prior)
 
 
 def _log_uniform(g: torch.Generator, lo: float, hi: float) -> float:
@@ -148,7 +154,7 @@ class SvbrdfDataset(Dataset):
             k = int(torch.randint(len(self.library), (), generator=g))
             return self._library_crop(k, g, size)
         seed = int(torch.randint(0, 2**40, (), generator=g))
-        return random_material(size, seed, mm_per_px)[1]
+        return random_material(size, seed, mm_per_px, self.config.prior)[1]
 
     def _library_crop(self, k: int, g: torch.Generator, size: int) -> MapSet:
         from matscan.materials.library import read_any
@@ -243,15 +249,21 @@ class SvbrdfDataset(Dataset):
 
 
 def fixed_validation_set(
-    count: int, crop: int = 128, rig: str = "dome24", seed: int = 1_000_000, subsets: str = "random"
+    count: int,
+    crop: int = 128,
+    rig: str = "dome24",
+    seed: int = 1_000_000,
+    subsets: str = "random",
+    prior: str = "v1",
 ) -> list[dict[str, Tensor]]:
     """A fixed procedural set never drawn in training.
 
     Sample i of config seed s is drawn from generator seed s·1,000,003 + i; this set
     uses s = 1,000,000, i.e. seeds from 1.000003e12 up, which training with seed 0
-    (or any small seed) never reaches.
+    (or any small seed) never reaches. ``prior`` "v1" (the default) is the set every
+    published validation number was measured on.
     """
-    ds = SvbrdfDataset(DataConfig(rig=rig, crop=crop, seed=seed, subsets=subsets, compile=False))
+    ds = SvbrdfDataset(DataConfig(rig=rig, crop=crop, seed=seed, subsets=subsets, compile=False, prior=prior))
     return [ds[i] for i in range(count)]
 
 
@@ -265,6 +277,7 @@ def synthesize(
     lights: str | None = None,
     overwrite: bool = False,
     progress: bool = False,
+    overwrite_any: bool = False,
 ) -> Path:
     """Write ``count`` procedural map sets with their simulated captures (``matscan synth``).
 
@@ -274,11 +287,11 @@ def synthesize(
     """
     from tqdm import tqdm
 
-    from matscan.atomic import atomic_folder
     from matscan.capture.virtual import simulate
     from matscan.errors import MatscanError
     from matscan.mapset import write_mapset
     from matscan.materials.procedural import generate
+    from matscan.outputs import claim_output
     from matscan.report.sheet import contact_sheet, save_sheet, to_display
 
     if count < 1:
@@ -287,7 +300,7 @@ def synthesize(
     indices = the_rig.subset(lights)
     show = indices[min(len(indices) - 1, len(indices) * 3 // 4)]
     tiles = []
-    with atomic_folder(out, overwrite=overwrite) as tmp:
+    with claim_output(out, "synth", overwrite=overwrite, overwrite_any=overwrite_any) as claim, claim.folder() as tmp:
         for i in tqdm(range(count), desc="synth", unit="material", disable=not progress):
             if family is None:
                 fam, maps = random_material(size, seed * 100_003 + i)

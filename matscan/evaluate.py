@@ -10,7 +10,6 @@ a flat normal; roughness 0.5; specular 0.04.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import zlib
@@ -406,10 +405,11 @@ def plot_curves(rows: list[dict[str, Any]], lights: Sequence[str], path: Path) -
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
+    from matscan.atomic import atomic_file
+
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
-    tmp.replace(path)
     return True
 
 
@@ -423,47 +423,60 @@ def evaluate_to_folder(
     overwrite: bool = False,
     progress: bool = False,
     jobs: int = 1,
+    inputs: Sequence[Path] = (),
+    overwrite_any: bool = False,
 ) -> dict[str, Any]:
-    """``matscan evaluate``: run the study and write results.json, results.md and plots."""
-    from matscan.atomic import atomic_folder
+    """``matscan evaluate``: run the study and write results.json, results.md and plots.
+
+    ``out`` is checked and locked before the study (never one of ``inputs``, the map
+    set folders read)."""
+    from matscan.jsonfile import dumps, finite_or_null
+    from matscan.outputs import claim_output
 
     check_methods(methods, encodings)
-    if out.is_dir() and any(out.iterdir()) and not overwrite:  # said before the work, not after it
-        raise MatscanError(f"{out}: folder exists and is not empty (choose another --out, or pass --overwrite)")
-    t0 = time.perf_counter()
-    rows = run_study(materials, "dome24", lights, methods, encodings, refine_steps, progress=progress, jobs=jobs)
-    with atomic_folder(out, overwrite=overwrite) as tmp:
-        (tmp / "results.json").write_text(
-            json.dumps(
-                {
-                    "rows": rows,
-                    "lights": list(lights),
-                    "methods": list(methods),
-                    "encodings": list(encodings),
-                    "materials": [n for n, _ in materials],
-                },
-                indent=1,
-            )
-            + "\n"
-        )
-        plotted = plot_curves(rows, lights, tmp / "input_count.png")
-        md = [
-            "# matscan evaluation",
-            "",
-            f"{len(materials)} materials × {len(encodings)} encodings × "
-            f"{len(lights)} light subsets × {len(methods)} methods; {time.perf_counter() - t0:.0f} s.",
-            "",
-            "## By method and number of lights (mean over materials and encodings)",
-            "",
-            markdown_table(rows, lights),
-            "## By method and material source (mean over light counts and encodings)",
-            "",
-            summary_table(rows, "source"),
-            "## By method and capture encoding (mean over materials and light counts)",
-            "",
-            summary_table(rows, "encoding"),
-        ]
-        if plotted:
-            md += ["![input-count curves](input_count.png)", ""]
-        (tmp / "results.md").write_text("\n".join(md))
+    with claim_output(out, "evaluate", inputs, overwrite=overwrite, overwrite_any=overwrite_any) as claim:
+        t0 = time.perf_counter()
+        rows = run_study(materials, "dome24", lights, methods, encodings, refine_steps, progress=progress, jobs=jobs)
+        with claim.folder() as tmp:
+            doc = {
+                "rows": rows,
+                "lights": list(lights),
+                "methods": list(methods),
+                "encodings": list(encodings),
+                "materials": [n for n, _ in materials],
+            }
+            (tmp / "results.json").write_text(dumps(finite_or_null(doc), "results.json", indent=1))
+            _write_tables(tmp, rows, materials, lights, methods, encodings, t0)
     return {"rows": len(rows), "seconds": time.perf_counter() - t0}
+
+
+def _write_tables(
+    tmp: Path,
+    rows: list[dict[str, Any]],
+    materials: list[tuple[str, MapSet]],
+    lights: Sequence[str],
+    methods: Sequence[str],
+    encodings: Sequence[str],
+    t0: float,
+) -> None:
+    """results.md and the input-count plot of a finished study."""
+    plotted = plot_curves(rows, lights, tmp / "input_count.png")
+    md = [
+        "# matscan evaluation",
+        "",
+        f"{len(materials)} materials × {len(encodings)} encodings × "
+        f"{len(lights)} light subsets × {len(methods)} methods; {time.perf_counter() - t0:.0f} s.",
+        "",
+        "## By method and number of lights (mean over materials and encodings)",
+        "",
+        markdown_table(rows, lights),
+        "## By method and material source (mean over light counts and encodings)",
+        "",
+        summary_table(rows, "source"),
+        "## By method and capture encoding (mean over materials and light counts)",
+        "",
+        summary_table(rows, "encoding"),
+    ]
+    if plotted:
+        md += ["![input-count curves](input_count.png)", ""]
+    (tmp / "results.md").write_text("\n".join(md))

@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import json
 import struct
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ import torch
 from matscan.brdf import DIELECTRIC_F0, metallic_to_specular, specular_to_metallic
 from matscan.color import linear_to_srgb
 from matscan.imagefile import write_image
+from matscan.jsonfile import dumps
 from matscan.mapset import MapSet, write_maps
 
 #: Mean |F0 error| of the metal/rough round trip above which glTF gets KHR_materials_specular.
@@ -258,7 +258,7 @@ def export_all(
         textures["specular_color_factor"] = factor  # type: ignore[assignment]
         written.append("tex_specular_color.png")
     doc = gltf_document(maps, field_mm, textures, folder)
-    (folder / "material.gltf").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    (folder / "material.gltf").write_text(dumps(doc, "material.gltf"), encoding="utf-8")
     (folder / "material.mtlx").write_text(materialx_document(textures), encoding="utf-8")
     written += ["material.gltf", "material.bin", "material.mtlx"]
     if exr:

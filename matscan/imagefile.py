@@ -13,12 +13,19 @@ OpenEXR package for EXR (exact float32), rawpy for RAW (the ``raw`` extra).
 from __future__ import annotations
 
 import os
+import re
+import sys
+import tempfile
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from matscan.atomic import atomic_file
 from matscan.errors import MatscanError, input_error
 
 cv2.setNumThreads(1)
@@ -50,8 +57,71 @@ def _suffix(path: Path) -> str:
     return path.suffix.lower()
 
 
+class _Undecodable(Exception):
+    """A decoder returned nothing (OpenCV's imdecode gives None for a corrupt file)."""
+
+
+_STDERR_LOCK = threading.Lock()
+#: OpenCV's log prefix (``[ WARN:0@0.025] global grfmt_png.cpp:793 readHeader ``).
+_CV_PREFIX = re.compile(r"^\[\s*\w+:[^\]]*\]\s*(global\s+)?(\S+:\d+\s+)?(\w+\s+)?")
+
+
+@contextmanager
+def _library_output(lines: list[str]) -> Iterator[None]:
+    """Send what C libraries (libpng, OpenCV's log, OpenEXR) print to the process's
+    stderr while a file is decoded into ``lines`` instead, so a bad file gives one
+    line of ours and nothing else. One decoder at a time holds file descriptor 2."""
+    with _STDERR_LOCK:
+        try:
+            sys.stderr.flush()
+            saved = os.dup(2)
+        except (OSError, ValueError, AttributeError):  # no usable stderr: nothing to quiet
+            yield
+            return
+        with tempfile.TemporaryFile() as sink:
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield
+            finally:
+                try:
+                    sys.stderr.flush()
+                except (OSError, ValueError):
+                    pass
+                os.dup2(saved, 2)
+                os.close(saved)
+                sink.seek(0)
+                lines.extend(sink.read(4096).decode("utf-8", "replace").splitlines())
+
+
+def _one_line(text: str, limit: int = 200) -> str:
+    """``text`` on one line (whitespace runs, newlines included, become one space), shortened."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _library_message(lines: list[str]) -> str:
+    """The most telling line a library printed (an error line if there is one)."""
+    lines = [line for line in lines if line.strip()]
+    errors = [line for line in lines if "error" in line.lower()]
+    return _CV_PREFIX.sub("", (errors or lines or [""])[0]).strip()
+
+
+def _decode_any(path: Path, suffix: str) -> ImageData:
+    if suffix in EXR:
+        return _read_exr(path)
+    if suffix in TIFF:
+        return _read_tiff(path)
+    if suffix in RAW:
+        return _read_raw(path)
+    return _read_cv2(path)
+
+
 def read_image(path: str | Path) -> ImageData:
-    """Read an image file; errors name the file and the problem."""
+    """Read an image file; every error is one line naming the file and the problem.
+
+    What the decoding libraries print on the way (libpng, OpenCV, OpenEXR) does not
+    reach the terminal; the most telling line of it joins our message.
+    """
     path = Path(path)
     suffix = _suffix(path)
     if suffix not in READABLE:
@@ -60,18 +130,21 @@ def read_image(path: str | Path) -> ImageData:
         )
     if not path.is_file():
         raise input_error(path, "no such file")
+    printed: list[str] = []
     try:
-        if suffix in EXR:
-            return _read_exr(path)
-        if suffix in TIFF:
-            return _read_tiff(path)
-        if suffix in RAW:
-            return _read_raw(path)
-        return _read_cv2(path)
-    except MatscanError:
-        raise
+        with _library_output(printed):
+            img = _decode_any(path, suffix)
+    except MatscanError as exc:
+        raise MatscanError(_one_line(str(exc), 400)) from None
     except Exception as exc:  # decoders raise many types for a corrupt file
-        raise input_error(path, f"cannot read as {suffix[1:].upper()} ({type(exc).__name__}: {exc})") from None
+        detail = "corrupt or not an image" if isinstance(exc, _Undecodable) else f"{type(exc).__name__}: {exc}"
+        said = _library_message(printed)
+        if said and said not in detail:
+            detail = f"{detail}: {said}"
+        raise input_error(path, f"cannot read as {suffix[1:].upper()} ({_one_line(detail)})") from None
+    if img.pixels.ndim != 3 or 0 in img.pixels.shape:
+        raise input_error(path, f"holds no pixels (an array of shape {img.pixels.shape})")
+    return img
 
 
 def _to_float(arr: np.ndarray, path: Path) -> tuple[np.ndarray, str, int]:
@@ -92,7 +165,7 @@ def _read_cv2(path: Path) -> ImageData:
     data = np.fromfile(str(path), dtype=np.uint8)
     arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if arr is None:
-        raise input_error(path, f"cannot read as {_suffix(path)[1:].upper()} (corrupt or not an image)")
+        raise _Undecodable()
     arr = _channels_last(arr)
     if arr.shape[2] == 3:
         arr = arr[:, :, ::-1]
@@ -142,10 +215,6 @@ def _read_raw(path: Path) -> ImageData:
     return ImageData(rgb.astype(np.float32) / 65535.0, "raw", 16)
 
 
-def _tmp_name(path: Path) -> Path:
-    return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-
-
 def write_image(path: str | Path, pixels: np.ndarray, bits: int = 8, header: dict | None = None) -> None:
     """Write (H, W, C) pixels; C in {1, 3, 4}; RGB order.
 
@@ -158,8 +227,11 @@ def write_image(path: str | Path, pixels: np.ndarray, bits: int = 8, header: dic
     arr = _channels_last(np.asarray(pixels))
     if arr.ndim != 3 or arr.shape[2] not in (1, 3, 4):
         raise MatscanError(f"{path}: cannot write an image of shape {arr.shape}")
-    tmp = _tmp_name(path)
-    try:
+    if suffix not in EXR | TIFF | PNG_LIKE:
+        raise MatscanError(f"{path}: cannot write {suffix or 'files without an ending'} (use .png, .tif or .exr)")
+    if suffix in PNG_LIKE and (bits not in (8, 16) or (bits == 16 and suffix != ".png")):
+        raise MatscanError(f"{path}: {suffix[1:].upper()} cannot hold {bits}-bit values")
+    with atomic_file(path) as tmp:
         if suffix in EXR:
             _write_exr(tmp, arr.astype(np.float32), header or {})
         elif suffix in TIFF:
@@ -171,9 +243,7 @@ def write_image(path: str | Path, pixels: np.ndarray, bits: int = 8, header: dic
                 data[:, :, 0] if data.shape[2] == 1 else data,
                 photometric=("minisblack" if data.shape[2] == 1 else "rgb"),
             )
-        elif suffix in PNG_LIKE:
-            if bits not in (8, 16) or (bits == 16 and suffix != ".png"):
-                raise MatscanError(f"{path}: {suffix[1:].upper()} cannot hold {bits}-bit values")
+        else:
             data = _quantise(arr, bits)
             if data.shape[2] == 3:
                 data = data[:, :, ::-1]
@@ -183,12 +253,6 @@ def write_image(path: str | Path, pixels: np.ndarray, bits: int = 8, header: dic
             if not ok:
                 raise MatscanError(f"{path}: the encoder refused the image")
             buf.tofile(str(tmp))
-        else:
-            raise MatscanError(f"{path}: cannot write {suffix or 'files without an ending'} (use .png, .tif or .exr)")
-        tmp.replace(path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def _quantise(arr: np.ndarray, bits: int) -> np.ndarray:

@@ -27,7 +27,6 @@ height range of a PNG height map.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -36,10 +35,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from matscan.atomic import atomic_folder
 from matscan.color import linear_to_srgb, srgb_to_linear
 from matscan.errors import MatscanError, input_error
 from matscan.imagefile import read_image, write_image
+from matscan.jsonfile import (
+    check_file_name,
+    check_int,
+    check_list,
+    check_number,
+    check_object,
+    check_string,
+    dumps,
+    read_json,
+    short_repr,
+)
+from matscan.outputs import claim_output
 
 MAPSET_FORMAT = "matscan-maps/1"
 REQUIRED = ("diffuse", "specular", "roughness", "normal")
@@ -188,13 +198,57 @@ def _read_map(path: Path, name: str, meta: dict[str, Any]) -> Tensor:
     elif spec.encoding == "normal":
         t = normalize_normals(t * 2 - 1)
     elif spec.encoding == "height" and not linear_file:
-        rng = meta.get("height")
-        if not isinstance(rng, dict) or "min_mm" not in rng or "max_mm" not in rng:
+        rng = meta.get("height")  # checked by _read_meta: two finite numbers, min ≤ max
+        if rng is None:
             raise input_error(
                 path, "an integer height map needs its range: mapset.json with height.min_mm and height.max_mm"
             )
-        t = float(rng["min_mm"]) + t * (float(rng["max_mm"]) - float(rng["min_mm"]))
+        t = rng["min_mm"] + t * (rng["max_mm"] - rng["min_mm"])
     return t
+
+
+#: The largest height magnitude a map set may record (1 km; real ones are millimetres).
+MAX_HEIGHT_MM = 1e6
+_FILE_KEYS = {"file": True, "bits": True}
+
+
+def _read_meta(folder: Path) -> dict[str, Any]:
+    """``mapset.json`` of a folder, checked (empty when there is none).
+
+    Known fields must have their types: ``format`` (``matscan-maps/1``), ``size``
+    (two positive integers), ``conventions`` (an object), ``files`` (map name →
+    ``{file, bits}``), ``height`` (``min_mm`` ≤ ``max_mm``, finite). Other keys
+    (a writer's ``extra_meta``) are kept as they are.
+    """
+    path = folder / "mapset.json"
+    if not path.is_file():
+        return {}
+    where = str(path)
+    meta = dict(check_object(read_json(path), where))
+    if "format" in meta:
+        check_string(meta["format"], f"{where}: format", (MAPSET_FORMAT,))
+    if "size" in meta:
+        size = check_list(meta["size"], f"{where}: size", "two sizes in pixels")
+        if len(size) != 2:
+            raise MatscanError(f"{where}: size: expected two sizes in pixels, got {short_repr(meta['size'])}")
+        for i, v in enumerate(size):
+            check_int(v, f"{where}: size[{i}]", 1)
+    if "conventions" in meta:
+        check_object(meta["conventions"], f"{where}: conventions")
+    if "files" in meta:
+        for name, entry in check_object(meta["files"], f"{where}: files", dict.fromkeys(SPECS, False)).items():
+            check_object(entry, f"{where}: files.{name}", _FILE_KEYS)
+            check_file_name(entry["file"], f"{where}: files.{name}.file")
+            if check_int(entry["bits"], f"{where}: files.{name}.bits") not in (8, 16, 32):
+                raise MatscanError(f"{where}: files.{name}.bits: {entry['bits']} is not one of 8, 16, 32")
+    if "height" in meta:
+        rng = check_object(meta["height"], f"{where}: height", {"min_mm": True, "max_mm": True})
+        lo = check_number(rng["min_mm"], f"{where}: height.min_mm", -MAX_HEIGHT_MM, MAX_HEIGHT_MM)
+        hi = check_number(rng["max_mm"], f"{where}: height.max_mm", -MAX_HEIGHT_MM, MAX_HEIGHT_MM)
+        if hi < lo:
+            raise MatscanError(f"{where}: height: max_mm {hi:g} is below min_mm {lo:g}")
+        meta["height"] = {"min_mm": lo, "max_mm": hi}
+    return meta
 
 
 def read_mapset(folder: str | Path) -> MapSet:
@@ -202,13 +256,7 @@ def read_mapset(folder: str | Path) -> MapSet:
     folder = Path(folder)
     if not folder.is_dir():
         raise input_error(folder, "no such map set folder")
-    meta: dict[str, Any] = {}
-    meta_path = folder / "mapset.json"
-    if meta_path.is_file():
-        try:
-            meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise input_error(meta_path, f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    meta = _read_meta(folder)
     maps: dict[str, Tensor] = {}
     for name in REQUIRED + OPTIONAL:
         path = _find_file(folder, name)
@@ -243,7 +291,7 @@ def write_mapset(
 
     PNG bit depths follow the table above; EXR is float32 and exact.
     """
-    with atomic_folder(folder, overwrite=overwrite) as tmp:
+    with claim_output(folder, "write_mapset", overwrite=overwrite) as claim, claim.folder() as tmp:
         write_maps(tmp, maps, file_format, extra_meta)
     return Path(folder)
 
@@ -276,4 +324,4 @@ def write_maps(folder: Path, maps: MapSet, file_format: str = "png", extra_meta:
         file = f"{name}.{file_format}"
         write_image(folder / file, data.permute(1, 2, 0).numpy(), bits=bits)
         meta["files"][name] = {"file": file, "bits": bits}
-    (folder / "mapset.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+    (folder / "mapset.json").write_text(dumps(meta, "mapset.json"), encoding="utf-8")

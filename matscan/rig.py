@@ -16,7 +16,6 @@ Built-in rigs:
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -27,6 +26,16 @@ import torch
 from torch import Tensor
 
 from matscan.errors import MatscanError, input_error
+from matscan.jsonfile import (
+    check_bool,
+    check_list,
+    check_number,
+    check_object,
+    check_string,
+    check_vector,
+    read_json,
+    short_repr,
+)
 
 Vec3 = tuple[float, float, float]
 
@@ -314,6 +323,8 @@ def resolve_rig(spec: str | Path | Mapping[str, Any] | Rig, base: Path | None = 
         return spec
     if isinstance(spec, Mapping):
         return rig_from_dict(spec, "rig")
+    if not isinstance(spec, (str, Path)):
+        raise MatscanError(f"rig: expected a built-in rig name, a .json file or a rig object, got {short_repr(spec)}")
     text = str(spec)
     if text in BUILTIN_RIGS:
         return builtin_rig(text)
@@ -343,35 +354,72 @@ _LIGHT_KEYS = {"position_mm": True, "intensity": False, "exponent": False, "aim_
 RIG_FORMAT = "matscan-rig/1"
 
 
-def _check_keys(obj: Any, spec: dict[str, bool], where: str) -> None:
-    if not isinstance(obj, Mapping):
-        raise MatscanError(f"{where}: expected an object, got {type(obj).__name__}")
-    for key in obj:
-        if key not in spec:
-            raise MatscanError(f"{where}: unknown key {key!r} (expected one of {', '.join(spec)})")
-    for key, required in spec.items():
-        if required and key not in obj:
-            raise MatscanError(f"{where}: missing field {key!r}")
+#: Bounds on a rig's numbers: far beyond any real rig, and small enough that squared
+#: distances and intensities stay finite in float32.
+MAX_MM = 1e6
+MAX_INTENSITY = 1e6
+MAX_EXPONENT = 1e3
+#: A light's aim point must be this far (mm) from the light for its axis to be defined.
+MIN_AIM_DISTANCE_MM = 1e-3
+
+
+def _check_keys(obj: Any, spec: dict[str, bool], where: str) -> Mapping[str, Any]:
+    return check_object(obj, where, spec)
 
 
 def _vec(value: Any, n: int, where: str) -> tuple[float, ...]:
-    if (
-        not isinstance(value, Sequence)
-        or isinstance(value, str)
-        or len(value) != n
-        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
-        or not all(math.isfinite(v) for v in value)
-    ):
-        raise MatscanError(f"{where}: expected {n} finite numbers, got {value!r}")
-    return tuple(float(v) for v in value)
+    return check_vector(value, n, where, -MAX_MM, MAX_MM)
 
 
 def _number(value: Any, where: str, positive: bool = False) -> float:
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-        raise MatscanError(f"{where}: expected a number, got {value!r}")
-    if positive and value <= 0:
-        raise MatscanError(f"{where}: must be positive, got {value!r}")
-    return float(value)
+    return check_number(value, where, positive=positive)
+
+
+def check_position(value: Any, where: str, what: str = "a light") -> Vec3:
+    """A point above the sample plane: 3 finite numbers (mm) within ``MAX_MM``, z > 0."""
+    pos = _vec(value, 3, where)
+    if pos[2] <= 0:
+        raise MatscanError(f"{where}: z = {pos[2]:g} is below the sample plane ({what} needs z > 0)")
+    return (pos[0], pos[1], pos[2])
+
+
+def check_light(position: Vec3, intensity: Any, exponent: Any, aim: Any, where: str, sep: str = ".") -> Light:
+    """A :class:`Light` from checked JSON values (``where`` names the light's object)."""
+    inten = check_vector(intensity, 3, f"{where}{sep}intensity", 0.0, MAX_INTENSITY)
+    m = check_number(exponent, f"{where}{sep}exponent", 0.0, MAX_EXPONENT)
+    aim_mm = _vec(aim, 3, f"{where}{sep}aim_mm")
+    if math.dist(aim_mm, position) < MIN_AIM_DISTANCE_MM:
+        raise MatscanError(f"{where}{sep}aim_mm: equals the light's position; the axis is undefined")
+    return Light(position_mm=position, intensity=(inten[0], inten[1], inten[2]), exponent=m, aim_mm=aim_mm)
+
+
+def _lights(raw: Any, where: str) -> tuple[Light, ...]:
+    lights = []
+    for k, lt in enumerate(check_list(raw, f"{where}: lights", "lights")):
+        lw = f"{where}: lights[{k}]"
+        _check_keys(lt, _LIGHT_KEYS, lw)
+        pos = check_position(lt["position_mm"], f"{lw}.position_mm")
+        lights.append(
+            check_light(pos, lt.get("intensity", [1, 1, 1]), lt.get("exponent", 1.0), lt.get("aim_mm", [0, 0, 0]), lw)
+        )
+    return tuple(lights)
+
+
+def _subsets(raw: Any, n_lights: int, where: str) -> dict[str, tuple[int, ...]]:
+    subsets: dict[str, tuple[int, ...]] = {}
+    for key, members in check_object(raw, f"{where}: subsets").items():
+        sw = f"{where}: subsets[{key!r}]"
+        if not isinstance(members, (list, tuple)):
+            raise MatscanError(f"{sw}: expected a list of light indices")
+        idx = []
+        for m in members:
+            if not isinstance(m, int) or isinstance(m, bool) or not 0 <= m < n_lights:
+                raise MatscanError(f"{sw}: {short_repr(m)} is not a light index (0 to {n_lights - 1})")
+            idx.append(m)
+        if len(set(idx)) != len(idx):
+            raise MatscanError(f"{sw}: names a light twice")
+        subsets[str(key)] = tuple(idx)
+    return subsets
 
 
 def rig_from_dict(data: Mapping[str, Any], where: str = "rig") -> Rig:
@@ -379,73 +427,37 @@ def rig_from_dict(data: Mapping[str, Any], where: str = "rig") -> Rig:
 
     Errors name ``where`` (a file name) and the field, e.g.
     ``rig.json: lights[3].position_mm: z = -10 is below the sample plane``.
+    Every number must be finite; positions and sizes within ``MAX_MM``, intensities
+    in [0, ``MAX_INTENSITY``], exponents in [0, ``MAX_EXPONENT``].
     """
     _check_keys(data, _RIG_KEYS, where)
-    if "format" in data and data["format"] != RIG_FORMAT:
-        raise MatscanError(f"{where}: format: expected {RIG_FORMAT!r}, got {data['format']!r}")
-    name = data["name"]
-    if not isinstance(name, str) or not name:
-        raise MatscanError(f"{where}: name: expected a non-empty string, got {name!r}")
-    ref = _number(data["reference_distance_mm"], f"{where}: reference_distance_mm", positive=True)
+    if "format" in data:
+        check_string(data["format"], f"{where}: format", (RIG_FORMAT,))
+    name = check_string(data["name"], f"{where}: name")
+    ref = check_number(data["reference_distance_mm"], f"{where}: reference_distance_mm", high=MAX_MM, positive=True)
 
-    cam = data["camera"]
-    _check_keys(cam, _CAMERA_KEYS, f"{where}: camera")
-    cam_pos = _vec(cam["position_mm"], 3, f"{where}: camera.position_mm")
-    if cam_pos[2] <= 0:
-        raise MatscanError(f"{where}: camera.position_mm: z = {cam_pos[2]:g} is not above the sample plane (z > 0)")
-    camera = Camera(position_mm=cam_pos, up=_vec(cam.get("up", (0, 1, 0)), 3, f"{where}: camera.up"))
+    cam = _check_keys(data["camera"], _CAMERA_KEYS, f"{where}: camera")
+    cam_pos = check_position(cam["position_mm"], f"{where}: camera.position_mm", "the camera")
+    up = _vec(cam.get("up", [0, 1, 0]), 3, f"{where}: camera.up")
+    if not any(up):
+        raise MatscanError(f"{where}: camera.up: must not be the zero vector")
+    camera = Camera(position_mm=cam_pos, up=(up[0], up[1], up[2]))
 
     fld = _vec(data["field_mm"], 2, f"{where}: field_mm")
     if min(fld) <= 0:
         raise MatscanError(f"{where}: field_mm: {list(fld)} must be two positive sizes (width, height) in mm")
 
-    raw_lights = data["lights"]
-    if not isinstance(raw_lights, Sequence) or isinstance(raw_lights, str) or not raw_lights:
-        raise MatscanError(f"{where}: lights: expected a non-empty list of lights")
-    lights = []
-    for k, lt in enumerate(raw_lights):
-        lw = f"{where}: lights[{k}]"
-        _check_keys(lt, _LIGHT_KEYS, lw)
-        pos = _vec(lt["position_mm"], 3, f"{lw}.position_mm")
-        if pos[2] <= 0:
-            raise MatscanError(f"{lw}.position_mm: z = {pos[2]:g} is below the sample plane (a light needs z > 0)")
-        inten = _vec(lt.get("intensity", (1, 1, 1)), 3, f"{lw}.intensity")
-        if min(inten) < 0:
-            raise MatscanError(f"{lw}.intensity: must not be negative, got {list(inten)}")
-        exponent = _number(lt.get("exponent", 1.0), f"{lw}.exponent")
-        if exponent < 0:
-            raise MatscanError(f"{lw}.exponent: must not be negative, got {exponent:g}")
-        aim = _vec(lt.get("aim_mm", (0, 0, 0)), 3, f"{lw}.aim_mm")
-        if aim == pos:
-            raise MatscanError(f"{lw}.aim_mm: equals the light's position; the axis is undefined")
-        lights.append(Light(position_mm=pos, intensity=inten, exponent=exponent, aim_mm=aim))
-
-    subsets: dict[str, tuple[int, ...]] = {}
-    raw_subsets = data.get("subsets", {})
-    if not isinstance(raw_subsets, Mapping):
-        raise MatscanError(f"{where}: subsets: expected an object of name → light list")
-    for key, members in raw_subsets.items():
-        sw = f"{where}: subsets[{key!r}]"
-        if not isinstance(members, Sequence) or isinstance(members, str):
-            raise MatscanError(f"{sw}: expected a list of light indices")
-        idx = []
-        for m in members:
-            if not isinstance(m, int) or isinstance(m, bool) or not 0 <= m < len(lights):
-                raise MatscanError(f"{sw}: {m!r} is not a light index (0 to {len(lights) - 1})")
-            idx.append(m)
-        if len(set(idx)) != len(idx):
-            raise MatscanError(f"{sw}: names a light twice")
-        subsets[str(key)] = tuple(idx)
-
+    lights = _lights(data["lights"], where)
+    subsets = _subsets(data.get("subsets", {}), len(lights), where)
     for flag in ("backlight", "per_image_geometry"):
-        if flag in data and not isinstance(data[flag], bool):
-            raise MatscanError(f"{where}: {flag}: expected true or false, got {data[flag]!r}")
+        if flag in data:
+            check_bool(data[flag], f"{where}: {flag}")
     return Rig(
         name=name,
         reference_distance_mm=ref,
         camera=camera,
         field_mm=(fld[0], fld[1]),
-        lights=tuple(lights),
+        lights=lights,
         subsets=subsets,
         backlight=bool(data.get("backlight", False)),
         per_image_geometry=bool(data.get("per_image_geometry", False)),
@@ -478,22 +490,15 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
 def load_rig(path: str | Path) -> Rig:
     """Read a rig JSON file; errors name the file and the field."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise input_error(path, "no such rig file") from None
-    except OSError as exc:
-        raise input_error(path, f"cannot read ({exc.strerror})") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise input_error(path, f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
-    return rig_from_dict(data, str(path))
+    if not path.exists():
+        raise input_error(path, "no such rig file")
+    return rig_from_dict(read_json(path), str(path))
 
 
 def save_rig(rig: Rig, path: str | Path) -> None:
     """Write a rig JSON file (atomically: a temporary name, then renamed)."""
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(rig_to_dict(rig), indent=2) + "\n", encoding="utf-8")
-    tmp.replace(path)
+    from matscan.atomic import write_text
+    from matscan.jsonfile import dumps
+
+    write_text(path, dumps(rig_to_dict(rig), str(path)))

@@ -2,7 +2,8 @@
 
 One run lives in a folder::
 
-    RUN/config.json              the TrainConfig (written once; a resume must match it)
+    RUN/config.json              the TrainConfig (written once; a resume must match it,
+                                 except in where it runs: RUNTIME_FIELDS)
     RUN/checkpoint.safetensors   weights + Adam state + step (overwritten atomically)
     RUN/log.csv                  one row per logged step: losses per map and their terms
     RUN/val.csv                  validation RMSE per map every ``val_every`` steps
@@ -24,9 +25,20 @@ Checkpoints and weights store the network config they were trained with
 written before that field existed load with the median ``photo_statistic`` they
 were trained with (:func:`net_config_of`).
 
+The materials come from the procedural prior named by ``prior`` ("v1", the default,
+draws what every earlier run drew; see :data:`matscan.materials.procedural.PRIORS`).
+Validation always uses the v1 set, so runs on either prior compare on one scale.
+
+Device: ``device`` "auto" trains on CUDA where there is one, else on the CPU. The
+networks, the batch and the losses live there; the data workers render on the CPU
+(``workers`` processes, each ``prefetch`` batches ahead, into pinned memory on CUDA);
+checkpoints hold CPU tensors, so a run started on a GPU resumes on a CPU and back.
+Where a run executes (``device``, ``workers``, ``prefetch``) does not change its
+samples, so a resume may change those.
+
 Data-parallel: started under ``torchrun --nproc_per_node N -m matscan.cli train …``
 each process trains on its share of every step's samples and gradients are
-averaged (DDP; gloo on CPU, NCCL on GPU). Only rank 0 writes files.
+averaged (DDP; gloo on CPU, NCCL on GPU, one GPU per process). Only rank 0 writes files.
 """
 
 from __future__ import annotations
@@ -47,10 +59,21 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 from torch.utils.data import DataLoader, Sampler
 
+from matscan.atomic import atomic_file
 from matscan.data import DataConfig, SvbrdfDataset, fixed_validation_set
 from matscan.errors import MatscanError, input_error
+from matscan.jsonfile import (
+    check_bool,
+    check_int,
+    check_list,
+    check_number,
+    check_object,
+    check_string,
+    loads_text,
+    short_repr,
+)
 from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights
-from matscan.nets import MAPS, MapNets, NetConfig, network_input, preset
+from matscan.nets import MAPS, PHOTO_STATISTICS, PRESETS, VARIANTS, MapNets, NetConfig, lights_to, network_input, preset
 from matscan.render import surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
 
@@ -80,6 +103,9 @@ class TrainConfig:
     workers: int = 1
     seed: int = 0
     init: str = ""  # start a new run from these weights (checkpoint or exported file); "" = from scratch
+    prior: str = "v1"  # the procedural material prior (matscan.materials.procedural.PRIORS)
+    device: str = "auto"  # "auto" (CUDA if available, else CPU), "cpu", "cuda", "cuda:N"
+    prefetch: int = 4  # batches each data worker prepares ahead
 
     @staticmethod
     def from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
@@ -116,34 +142,184 @@ def build_nets(cfg: TrainConfig, net: NetConfig | None = None) -> MapNets:
     return MapNets(len(rig.lights), net or preset(cfg.preset), cfg.variant, cfg.maps)
 
 
+#: TrainConfig fields that say where a run executes, not what it computes: a resume may change them.
+RUNTIME_FIELDS = ("device", "workers", "prefetch")
+
+
+def resolve_device(name: str, local_rank: int = 0) -> torch.device:
+    """The device a run trains on: ``name`` is "auto" (CUDA if available, else the CPU),
+    "cpu", "cuda" or "cuda:N". Under torchrun, "auto" and "cuda" take GPU ``local_rank``."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name != "cpu" and not (name == "cuda" or (name.startswith("cuda:") and name[5:].isdigit())):
+        raise MatscanError(f"device: {name!r} is not one of auto, cpu, cuda, cuda:N")
+    if name == "cpu":
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise MatscanError(f"device: {name!r}, but this torch ({torch.__version__}) sees no CUDA device")
+    device = torch.device(f"cuda:{local_rank}" if name == "cuda" else name)
+    if device.index >= torch.cuda.device_count():
+        raise MatscanError(f"device: {device} does not exist (this machine has {torch.cuda.device_count()} GPUs)")
+    return device
+
+
 #: Metadata of the weights a run started from (``init``), carried into its checkpoints and exports.
 INIT_KEYS = ("init", "init_step", "init_elapsed_seconds", "init_photo_statistic", "init_networks")
 
 
-def net_config_of(meta: dict[str, str], cfg: TrainConfig) -> NetConfig:
+def net_config_of(meta: dict[str, str], cfg: TrainConfig, where: str = "weights") -> NetConfig:
     """The network config a checkpoint or weights file was trained with: its stored
     ``net_config``, or, for files written before that was stored, the preset's with
-    the median ``photo_statistic`` (the only statistic there was then)."""
+    the median ``photo_statistic`` (the only statistic there was then).
+
+    A stored config is checked field by field (``where`` names the file in errors).
+    """
     if "net_config" in meta:
-        return NetConfig(**json.loads(meta["net_config"]))
+        return _check_net_config(loads_text(meta["net_config"], f"{where}: net_config"), f"{where}: net_config")
     return NetConfig(**{**asdict(preset(cfg.preset)), "photo_statistic": "median"})
 
 
 def _metadata(path: Path) -> dict[str, str]:
+    """The string metadata of a safetensors file; a damaged header is a one-line error."""
     from safetensors import safe_open
 
     try:
         with safe_open(str(path), framework="pt") as f:
             return f.metadata() or {}
     except Exception as exc:  # safetensors raises its own error types for a damaged header
-        raise input_error(path, f"not a readable safetensors file ({exc})") from None
+        detail = " ".join(str(exc).split())[:200]
+        raise input_error(path, f"not a readable safetensors file ({detail})") from None
 
 
 def _config_of(meta: dict[str, str], path: Path) -> TrainConfig:
-    text = meta.get("train_config") or meta.get("config")
-    if text is None:
+    """The training config stored in a checkpoint's or weights file's metadata, checked."""
+    key = "train_config" if meta.get("train_config") else "config"
+    if not meta.get(key):
         raise input_error(path, "not a matscan weights file (no training config in its metadata)")
-    return TrainConfig.from_dict(json.loads(text), str(path))
+    where = f"{path}: {key}"
+    return _check_train_config(loads_text(meta[key], where), where)
+
+
+#: Bounds on a stored network shape: beyond every preset, small enough to build.
+_NET_BOUNDS = {"base": (1, 1024), "growth": (0, 1024), "depth": (1, 12), "global_dim": (0, 65536)}
+_WEIGHTS_FORMATS = ("matscan-weights/1", "matscan-checkpoint/1")
+_RECORD_KEYS = {"steps": True, "elapsed_seconds": True, "from": False}
+
+
+def _check_net_config(data: Any, where: str) -> NetConfig:
+    """A :class:`NetConfig` from its stored JSON object, every field checked."""
+    obj = check_object(data, where, {f.name: False for f in fields(NetConfig)})
+    values: dict[str, Any] = {}
+    for f in fields(NetConfig):
+        if f.name not in obj:
+            continue
+        w = f"{where}.{f.name}"
+        if f.name in _NET_BOUNDS:
+            values[f.name] = check_int(obj[f.name], w, *_NET_BOUNDS[f.name])
+        elif isinstance(f.default, bool):
+            values[f.name] = check_bool(obj[f.name], w)
+        else:
+            values[f.name] = check_string(obj[f.name], w, tuple(PHOTO_STATISTICS))
+    net = NetConfig(**values)
+    if max(net.channels()) > 1024:
+        raise MatscanError(f"{where}: base + growth × depth = {max(net.channels())} channels; at most 1024")
+    return net
+
+
+def _check_maps(value: Any, where: str) -> tuple[str, ...]:
+    """A non-empty list of distinct map names."""
+    maps = tuple(check_string(m, f"{where}[{i}]", MAPS) for i, m in enumerate(check_list(value, where, "map names")))
+    if len(set(maps)) != len(maps):
+        raise MatscanError(f"{where}: names a map twice")
+    return maps
+
+
+def _check_train_config(data: Any, where: str) -> TrainConfig:
+    """A :class:`TrainConfig` from its stored JSON object, every field checked by type
+    (and the ones that shape the networks by value)."""
+    obj = dict(check_object(data, where, {f.name: False for f in fields(TrainConfig)}))
+    for f in fields(TrainConfig):
+        if f.name not in obj:
+            continue
+        w, v = f"{where}.{f.name}", obj[f.name]
+        if f.name == "maps":
+            obj[f.name] = _check_maps(v, w)
+        elif f.name in ("preset", "variant"):
+            check_string(v, w, tuple(PRESETS) if f.name == "preset" else VARIANTS)
+        elif f.name == "rig":  # the networks' input width is its light count
+            try:
+                resolve_rig(check_string(v, w))
+            except MatscanError as exc:
+                raise MatscanError(f"{w}: {exc}") from None
+        else:  # other fields: the JSON type of their default
+            _check_like(f.default, v, w)
+    return TrainConfig.from_dict(obj, where)
+
+
+def _check_like(default: Any, value: Any, where: str) -> None:
+    """``value`` has the JSON type of ``default`` (bool, int, float, str; others unchecked)."""
+    if isinstance(default, bool):
+        check_bool(value, where)
+    elif isinstance(default, int):
+        check_int(value, where)
+    elif isinstance(default, float):
+        check_number(value, where)
+    elif isinstance(default, str) and not isinstance(value, str):
+        raise MatscanError(f"{where}: expected a string, got {short_repr(value)}")
+
+
+def _check_records(value: Any, where: str, maps: tuple[str, ...]) -> None:
+    """Per-network training records (``networks``, ``init_networks``): one for each of ``maps``."""
+    records = check_object(value, where, dict.fromkeys(MAPS, False))
+    for m in maps:
+        if m not in records:
+            raise MatscanError(f"{where}: no record of the {m} network")
+    for m, record in records.items():
+        rec = check_object(record, f"{where}.{m}", _RECORD_KEYS)
+        check_int(rec["steps"], f"{where}.{m}.steps", 0)
+        check_number(rec["elapsed_seconds"], f"{where}.{m}.elapsed_seconds", 0)
+        if "from" in rec:
+            check_string(rec["from"], f"{where}.{m}.from")
+
+
+def _check_metadata(meta: dict[str, str], path: Path, cfg: TrainConfig) -> tuple[str, ...]:
+    """Check the metadata fields that loading and :func:`training_record` read; return the
+    file's maps (its ``maps`` field, or the training config's)."""
+    if "format" in meta and meta["format"] not in _WEIGHTS_FORMATS:
+        raise input_error(path, f"format: {short_repr(meta['format'])} is not one of {', '.join(_WEIGHTS_FORMATS)}")
+    maps = cfg.maps
+    if "maps" in meta:
+        maps = _check_maps(meta["maps"].split(","), f"{path}: maps")
+    for key in ("step", "init_step", "elapsed_seconds", "init_elapsed_seconds"):
+        if key in meta:
+            value = loads_text(meta[key], f"{path}: {key}")
+            (check_int if key.endswith("step") else check_number)(value, f"{path}: {key}", 0)
+    if "networks" in meta:
+        _check_records(loads_text(meta["networks"], f"{path}: networks"), f"{path}: networks", maps)
+        return maps
+    key = "train_config" if meta.get("train_config") else "config"
+    if "maps" not in loads_text(meta[key], f"{path}: {key}"):  # training_record reads them from there
+        raise input_error(path, f"{key}: missing field 'maps'")
+    if "init_networks" in meta:
+        if "step" not in meta:
+            raise input_error(path, "init_networks without step: the metadata is incomplete")
+        where = f"{path}: init_networks"
+        _check_records(loads_text(meta["init_networks"], where), where, cfg.maps)
+    return maps
+
+
+def _check_fits(path: Path, nets: MapNets) -> None:
+    """Refuse a file whose tensors are not exactly those of ``nets`` (names and shapes)."""
+    from safetensors import safe_open
+
+    want = {k: tuple(v.shape) for k, v in nets.state_dict().items()}
+    with safe_open(str(path), framework="pt") as f:
+        stored = [k for k in f.keys() if not k.startswith("opt.")]
+        have = {k.removeprefix("model."): tuple(f.get_slice(k).get_shape()) for k in stored}
+    for k in sorted(set(want) | set(have)):
+        if want.get(k) != have.get(k):
+            shapes = f"{k}: file {have.get(k)}, network {want.get(k)}"
+            raise input_error(path, f"weights do not fit the networks its metadata describes ({shapes})")
 
 
 def sample_lights(indices: Tensor, cfg: TrainConfig, rig) -> LightSet:
@@ -185,13 +361,14 @@ def save_checkpoint(
     extra: dict[str, str] | None = None,
 ) -> None:
     """Weights, Adam state, step and network config in one safetensors file, written
-    atomically; ``extra``: more metadata (the run's ``init`` record)."""
-    tensors = {f"model.{k}": v.detach().contiguous() for k, v in nets.state_dict().items()}
+    atomically; ``extra``: more metadata (the run's ``init`` record). Tensors are
+    stored from CPU copies, so the file loads on any device."""
+    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in nets.state_dict().items()}
     state = opt.state_dict()
     adam_steps = {}
     for pid, st in state["state"].items():
-        tensors[f"opt.{pid}.exp_avg"] = st["exp_avg"].contiguous()
-        tensors[f"opt.{pid}.exp_avg_sq"] = st["exp_avg_sq"].contiguous()
+        tensors[f"opt.{pid}.exp_avg"] = st["exp_avg"].cpu().contiguous()
+        tensors[f"opt.{pid}.exp_avg_sq"] = st["exp_avg_sq"].cpu().contiguous()
         adam_steps[str(pid)] = float(st["step"])
     meta = {
         "step": str(step),
@@ -202,9 +379,8 @@ def save_checkpoint(
         "format": "matscan-checkpoint/1",
         **(extra or {}),
     }
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    save_file(tensors, str(tmp), metadata=meta)
-    tmp.replace(path)
+    with atomic_file(path) as tmp:
+        save_file(tensors, str(tmp), metadata=meta)
 
 
 def load_checkpoint(
@@ -291,9 +467,8 @@ def export_weights(
     }
     info.update(extra or {})
     tensors = {k: v.to(dtype) if v.is_floating_point() else v for k, v in tensors.items()}
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
-    save_file(tensors, str(tmp), metadata=info)
-    tmp.replace(out)
+    with atomic_file(out) as tmp:
+        save_file(tensors, str(tmp), metadata=info)
     return out
 
 
@@ -328,9 +503,12 @@ def load_weights(path: str | Path) -> tuple[MapNets, dict[str, str]]:
         raise input_error(path, "no such weights file")
     meta = _metadata(path)
     cfg = _config_of(meta, path)
-    if "maps" in meta:  # an export may hold networks of several runs (export_weights fill_from)
-        cfg = TrainConfig(**{**asdict(cfg), "maps": tuple(meta["maps"].split(","))})
-    nets = build_nets(cfg, net_config_of(meta, cfg))
+    # an export may hold networks of several runs (export_weights fill_from): its maps name them
+    cfg = TrainConfig(**{**asdict(cfg), "maps": _check_metadata(meta, path, cfg)})
+    net = net_config_of(meta, cfg, str(path))
+    with torch.device("meta"):  # shapes only: a file that does not fit allocates nothing
+        _check_fits(path, build_nets(cfg, net))
+    nets = build_nets(cfg, net)
     load_checkpoint(path, nets, None)
     nets.eval()
     return nets, meta
@@ -339,20 +517,32 @@ def load_weights(path: str | Path) -> tuple[MapNets, dict[str, str]]:
 # --- evaluation ----------------------------------------------------------------------
 
 
+#: Batch entries read as numbers (crop places, sample indices): they stay on the CPU.
+HOST_KEYS = ("offset", "full_size", "index")
+
+
 def batch_to(samples: list[dict[str, Tensor]]) -> dict[str, Tensor]:
     return {k: torch.stack([s[k] for s in samples]) for k in samples[0]}
 
 
+def to_device(batch: dict[str, Tensor], device: torch.device) -> dict[str, Tensor]:
+    """The batch's photos and maps on ``device`` (asynchronously from pinned memory);
+    :data:`HOST_KEYS` stay where they are."""
+    return {k: v if k in HOST_KEYS else v.to(device, non_blocking=True) for k, v in batch.items()}
+
+
 @torch.no_grad()
 def validate(nets: MapNets, samples: list[dict[str, Tensor]], rig: Rig, batch: int = 8) -> dict[str, float]:
-    """RMSE per map (normals: RMSE of the vectors, and mean angular error in degrees)."""
+    """RMSE per map (normals: RMSE of the vectors, and mean angular error in degrees),
+    computed on the networks' device."""
     was = nets.training
     nets.eval()
+    device = next(nets.parameters()).device
     sq = {m: 0.0 for m in nets.maps}
     count = {m: 0 for m in nets.maps}
     angle, pixels = 0.0, 0
     for i in range(0, len(samples), batch):
-        b = batch_to(samples[i : i + batch])
+        b = to_device(batch_to(samples[i : i + batch]), device)
         out = nets(network_input(b["inputs"], b["present"], b["offset"], b["full_size"], rig))
         for m in nets.maps:
             sq[m] += float(((out[m] - b[m]) ** 2).sum())
@@ -393,8 +583,15 @@ def train(
 
     run = Path(run)
     rank, world = _dist_info()
+    device = resolve_device(cfg.device, int(os.environ.get("LOCAL_RANK", "0")))
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+        torch.backends.cudnn.benchmark = True  # one input shape for the whole run: pick the fastest convs
+    if cfg.workers < 0 or (cfg.workers > 0 and cfg.prefetch < 1):
+        raise MatscanError(f"workers {cfg.workers}, prefetch {cfg.prefetch}: need workers ≥ 0 and prefetch ≥ 1")
+    data_cfg = DataConfig(rig=cfg.rig, crop=cfg.crop, seed=cfg.seed, prior=cfg.prior)  # checks the prior
     if world > 1 and not torch.distributed.is_initialized():
-        torch.distributed.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        torch.distributed.init_process_group("nccl" if device.type == "cuda" else "gloo")
     torch.manual_seed(cfg.seed)
     config_path = run / "config.json"
     ckpt = run / CHECKPOINT
@@ -403,15 +600,19 @@ def train(
         raise input_error(init, "no such weights file to start the run from (init)")
     # a resumed run keeps the network config it started with
     start_meta = _metadata(ckpt) if ckpt.is_file() else {}
-    nets = build_nets(cfg, net_config_of(start_meta, cfg) if start_meta else None)
+    nets = build_nets(cfg, net_config_of(start_meta, cfg) if start_meta else None).to(device)  # init on the CPU
     opt = torch.optim.Adam(nets.parameters(), lr=cfg.lr)
     step, elapsed = 0, 0.0
     if rank == 0:
         run.mkdir(parents=True, exist_ok=True)
         if config_path.is_file():
             saved = TrainConfig.from_dict(json.loads(config_path.read_text()), str(config_path))
-            if saved != cfg:
-                diff = [f.name for f in fields(cfg) if getattr(saved, f.name) != getattr(cfg, f.name)]
+            diff = [
+                f.name
+                for f in fields(cfg)
+                if f.name not in RUNTIME_FIELDS and getattr(saved, f.name) != getattr(cfg, f.name)
+            ]
+            if diff:
                 raise input_error(
                     run,
                     f"holds a run with another config (differs in {', '.join(diff)}); "
@@ -441,10 +642,12 @@ def train(
 
     model: torch.nn.Module = nets
     if world > 1:
-        model = torch.nn.parallel.DistributedDataParallel(nets)
+        model = torch.nn.parallel.DistributedDataParallel(
+            nets, device_ids=[device.index] if device.type == "cuda" else None
+        )
 
     rig = resolve_rig(cfg.rig)
-    data = SvbrdfDataset(DataConfig(rig=cfg.rig, crop=cfg.crop, seed=cfg.seed))
+    data = SvbrdfDataset(data_cfg)
     # spawned (not forked) workers: a fork after this process has run OpenMP or compiled
     # kernels can deadlock; each worker builds its own kernels
     loader = DataLoader(
@@ -452,8 +655,9 @@ def train(
         batch_sampler=StepSampler(sample_offset + step, cfg.batch, rank, world),
         num_workers=cfg.workers,
         persistent_workers=cfg.workers > 0,
-        prefetch_factor=4 if cfg.workers > 0 else None,
+        prefetch_factor=cfg.prefetch if cfg.workers > 0 else None,
         multiprocessing_context="spawn" if cfg.workers > 0 else None,
+        pin_memory=device.type == "cuda",
     )
     val_samples = fixed_validation_set(cfg.val_count, cfg.crop, cfg.rig) if rank == 0 and cfg.val_every else []
 
@@ -482,26 +686,26 @@ def train(
     def keep_going() -> bool:
         go = step < end and not stop["now"] and time.monotonic() < deadline
         if world > 1:  # every process stops at the same step, or DDP would wait forever
-            flag = torch.tensor([0 if go else 1])
+            flag = torch.tensor([0 if go else 1], device=device)
             torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
             go = int(flag) == 0
         return go
 
     try:
         while keep_going():
-            b = next(batches)
+            b = to_device(next(batches), device)
             x = network_input(b["inputs"], b["present"], b["offset"], b["full_size"], rig)
             out = model(x)
             truth = {m: b[m] for m in MAPS}
             lights = points = None
             if cfg.lambda_render > 0 and cfg.render_lights > 0:
-                lights = sample_lights(b["index"], cfg, rig)
+                lights = lights_to(sample_lights(b["index"], cfg, rig), device)
                 points = torch.stack(
                     [
                         surface_points(rig.field_mm, (cfg.crop, cfg.crop), tuple(o.tolist()), tuple(f.tolist()))
                         for o, f in zip(b["offset"], b["full_size"], strict=True)
                     ]
-                )
+                ).to(device)
             total = 0.0
             terms: dict[str, float] = {}
             for m in cfg.maps:

@@ -92,7 +92,7 @@ def test_synth(tmp_path, capsys):
     assert main(["synth", "--out", str(tmp_path / "s"), "--count", "2", "--size", "32", "--lights", "6"]) == 0
     assert "wrote 2 materials" in capsys.readouterr().out
     folders = sorted(p.name for p in (tmp_path / "s").iterdir())
-    assert folders[-1] == "contact_sheet.png" and len(folders) == 3
+    assert folders[-2:] == ["contact_sheet.png", "matscan.json"] and len(folders) == 4
     cap = load_capture(tmp_path / "s" / folders[0] / "capture")
     assert cap.light_indices == (0, 4, 8, 12, 16, 20)
     assert main(["synth", "--out", str(tmp_path / "t"), "--count", "1", "--size", "32", "--family", "velvet"]) == 2

@@ -243,5 +243,5 @@ def test_the_record_says_how_trained_each_network_is(tmp_path):
     args = ["reconstruct", str(tmp_path / "six"), "--out", str(tmp_path / "out"), "--model", str(weights)]
     assert main([*args, "--refine", "off"]) == 0
     model = json.loads((tmp_path / "out" / "matscan.json").read_text())["model"]
-    assert model["file"] == str(weights)
+    assert (tmp_path / "out" / model["file"]).resolve() == weights.resolve()  # relative to the output
     assert {m: r["steps"] for m, r in model["networks"].items()} == dict.fromkeys(MAPS, 2)

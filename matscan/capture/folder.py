@@ -20,7 +20,6 @@ developed linearly. Reading never modifies the folder.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -31,11 +30,23 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from matscan.atomic import atomic_folder
 from matscan.color import linear_to_srgb, srgb_to_linear
 from matscan.errors import MatscanError, input_error
 from matscan.imagefile import read_image, write_image
-from matscan.rig import BUILTIN_RIGS, Light, LightSet, Rig, builtin_rig, resolve_rig, rig_to_dict
+from matscan.jsonfile import check_file_name, check_object, check_vector, dumps, read_json, short_repr
+from matscan.outputs import claim_output
+from matscan.rig import (
+    BUILTIN_RIGS,
+    MAX_INTENSITY,
+    MAX_MM,
+    MIN_AIM_DISTANCE_MM,
+    Light,
+    LightSet,
+    Rig,
+    builtin_rig,
+    resolve_rig,
+    rig_to_dict,
+)
 
 CAPTURE_FORMAT = "matscan-capture/1"
 ENCODINGS = ("srgb", "linear")
@@ -61,7 +72,10 @@ class Capture:
         backlight: backlight photos by key (linear, (3, H, W)), if any.
         calibration: the calibration JSON object, if any.
         folder: where it was read from.
-        meta: other recorded fields (``simulation``).
+        meta: other recorded fields (``simulation``), and ``warnings`` (a list of
+            one-line messages) once calibration has been applied.
+        calibration_file: the calibration file, when the capture names one (its
+            flat fields lie beside it).
     """
 
     rig: Rig
@@ -76,6 +90,7 @@ class Capture:
     calibration: dict[str, Any] | None = None
     folder: Path | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    calibration_file: Path | None = None
 
     @property
     def size(self) -> tuple[int, int]:
@@ -88,21 +103,12 @@ class Capture:
         return (self.field_mm[0] / w, self.field_mm[1] / h)
 
 
-def _load_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise input_error(path, "no such file") from None
-    except json.JSONDecodeError as exc:
-        raise input_error(path, f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise input_error(path, f"cannot read ({exc})") from None
-
-
 def _decode(path: Path, encoding: str) -> tuple[Tensor, Tensor]:
     """Read an image as linear (3, H, W) plus its saturation mask (1, H, W)."""
     img = read_image(path)
     px = img.pixels
+    if px.ndim != 3 or px.shape[0] == 0 or px.shape[1] == 0:
+        raise input_error(path, f"holds no pixels (shape {px.shape})")
     if px.shape[2] == 4:
         px = px[:, :, :3]
     elif px.shape[2] == 1:
@@ -122,173 +128,208 @@ def _decode(path: Path, encoding: str) -> tuple[Tensor, Tensor]:
 
 
 def _position(value: Any, where: str) -> tuple[float, float, float]:
-    if (
-        not isinstance(value, Sequence)
-        or isinstance(value, str)
-        or len(value) != 3
-        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
-    ):
-        raise MatscanError(f"{where}: expected 3 numbers (x, y, z in mm), got {value!r}")
-    if value[2] <= 0:
-        raise MatscanError(f"{where}: z = {value[2]:g} is not above the sample plane (z > 0)")
-    return (float(value[0]), float(value[1]), float(value[2]))
+    """A light or camera position of a per-image entry: 3 finite numbers (mm), z > 0."""
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise MatscanError(f"{where}: expected 3 numbers (x, y, z in mm), got {short_repr(value)}")
+    pos = check_vector(value, 3, where, -MAX_MM, MAX_MM)
+    if pos[2] <= 0:
+        raise MatscanError(f"{where}: z = {pos[2]:g} is not above the sample plane (z > 0)")
+    return (pos[0], pos[1], pos[2])
+
+
+@dataclass(frozen=True)
+class _Entry:
+    """One checked ``images`` entry: its position in the list, file, and light or geometry."""
+
+    index: int
+    file: str
+    light: int | None = None
+    geometry: tuple[Light, tuple[float, float, float]] | None = None
+
+
+def _read_document(folder: Path) -> tuple[Path, Mapping[str, Any]]:
+    """``capture.json`` of a folder, parsed strictly, with its top-level keys checked."""
+    if not folder.is_dir():
+        raise input_error(folder, "no such capture folder")
+    path = folder / "capture.json"
+    if not path.is_file():
+        raise input_error(folder, "no capture.json here (not a matscan capture folder)")
+    data = read_json(path)
+    if not isinstance(data, Mapping):
+        raise input_error(path, "expected a JSON object")
+    for key in data:
+        if key not in _KEYS:
+            raise input_error(path, f"unknown key {short_repr(key)} (expected one of {', '.join(_KEYS)})")
+    for key in ("format", "rig", "images"):
+        if key not in data:
+            raise input_error(path, f"missing field {key!r}")
+    if data["format"] != CAPTURE_FORMAT:
+        raise input_error(path, f"format: expected {CAPTURE_FORMAT!r}, got {short_repr(data['format'])}")
+    return path, data
+
+
+def _read_rig(spec: Any, folder: Path, path: Path) -> Rig:
+    """The capture's rig: a built-in name, a rig file beside the capture, or an object."""
+    if isinstance(spec, str):
+        check_file_name(spec, f"{path}: rig")
+    elif not isinstance(spec, Mapping):
+        raise input_error(path, f"rig: expected a rig name, a .json file or a rig object, got {short_repr(spec)}")
+    try:
+        return resolve_rig(spec, base=folder)
+    except MatscanError as exc:
+        raise input_error(path, str(exc)) from None
+
+
+def _read_field(data: Mapping[str, Any], rig: Rig, path: Path) -> tuple[float, float]:
+    """``field_mm``: two finite positive sizes in mm (the rig's when absent)."""
+    if "field_mm" not in data:
+        return rig.field_mm
+    f = data["field_mm"]
+    if not isinstance(f, (list, tuple)) or len(f) != 2:
+        raise input_error(path, f"field_mm: expected two positive sizes (width, height) in mm, got {short_repr(f)}")
+    w, h = check_vector(f, 2, f"{path}: field_mm", high=MAX_MM)
+    if min(w, h) <= 0:
+        raise input_error(path, f"field_mm: expected two positive sizes (width, height) in mm, got {short_repr(f)}")
+    return (w, h)
+
+
+def _per_image_light(entry: Mapping[str, Any], rig: Rig, where: str) -> tuple[Light, tuple[float, float, float]]:
+    """The light and camera of an entry of a per-image-geometry capture (``flash``)."""
+    template = rig.lights[0]
+    position = _position(entry["light_position_mm"], f"{where}.light_position_mm")
+    if math.dist(position, template.aim_mm) < MIN_AIM_DISTANCE_MM:
+        raise MatscanError(f"{where}.light_position_mm: is the rig's aim point {list(template.aim_mm)}; move it")
+    intensity = template.intensity
+    if "intensity" in entry:
+        v = check_vector(entry["intensity"], 3, f"{where}.intensity", 0.0, MAX_INTENSITY)
+        intensity = (v[0], v[1], v[2])
+    light = Light(position_mm=position, intensity=intensity, exponent=template.exponent, aim_mm=template.aim_mm)
+    return light, _position(entry["camera_position_mm"], f"{where}.camera_position_mm")
+
+
+def _read_entries(raw: Any, rig: Rig, path: Path, lights: Sequence[int] | None) -> list[_Entry]:
+    """The checked ``images`` entries, keeping only ``lights`` (all when None)."""
+    if not isinstance(raw, (list, tuple)) or not raw:
+        raise input_error(path, "images: expected a non-empty list of {light, file} entries")
+    keys = _IMAGE_KEYS_PER_IMAGE if rig.per_image_geometry else _IMAGE_KEYS_INDEXED
+    required = ("file", "light_position_mm", "camera_position_mm") if rig.per_image_geometry else ("light", "file")
+    seen_light: dict[int, int] = {}
+    seen_file: dict[str, int] = {}
+    chosen: list[_Entry] = []
+    for i, entry in enumerate(raw):
+        where = f"{path}: images[{i}]"
+        if not isinstance(entry, Mapping):
+            raise MatscanError(f"{where}: expected an object with {', '.join(required)}")
+        check_object(entry, where, {k: k in required for k in keys})
+        file = check_file_name(entry["file"], f"{where}: file")
+        if file in seen_file:
+            raise MatscanError(f"{where}: file {file!r} is listed twice (also images[{seen_file[file]}])")
+        seen_file[file] = i
+        if rig.per_image_geometry:
+            chosen.append(_Entry(i, file, geometry=_per_image_light(entry, rig, where)))
+            continue
+        k = entry["light"]
+        if not isinstance(k, int) or isinstance(k, bool) or not 0 <= k < len(rig.lights):
+            raise MatscanError(
+                f"{where}: light {short_repr(k)} is not a light of rig {rig.name!r} (0 to {len(rig.lights) - 1})"
+            )
+        if k in seen_light:
+            raise MatscanError(f"{where}: light {k} appears twice (also images[{seen_light[k]}])")
+        seen_light[k] = i
+        if lights is None or k in lights:
+            chosen.append(_Entry(i, file, light=k))
+    if not chosen:
+        raise input_error(path, f"none of the requested lights {list(lights or [])} is in this capture")
+    return chosen
+
+
+def _read_images(folder: Path, chosen: list[_Entry], encoding: str) -> tuple[Tensor, Tensor]:
+    """(N, 3, H, W) linear photos and (N, 1, H, W) saturation masks, all of one size."""
+    images, saturated = [], []
+    for entry in chosen:
+        file_path = folder / entry.file
+        img, sat = _decode(file_path, encoding)
+        if images and img.shape[1:] != images[0].shape[1:]:
+            h, w = images[0].shape[1:]
+            raise input_error(file_path, f"is {img.shape[2]}×{img.shape[1]} pixels but {chosen[0].file} is {w}×{h}")
+        images.append(img)
+        saturated.append(sat)
+    return torch.stack(images), torch.stack(saturated)
+
+
+def _read_backlight(raw: Any, folder: Path, path: Path, encoding: str, like: Tensor, first: str) -> dict[str, Tensor]:
+    """The backlight photos by key, each the size of ``like`` (a photo, (3, H, W))."""
+    bl = check_object(raw, f"{path}: backlight", {k: k in ("green", "blue") for k in BACKLIGHT_KEYS})
+    backlight: dict[str, Tensor] = {}
+    for key, file in bl.items():
+        file_path = folder / check_file_name(file, f"{path}: backlight.{key}")
+        img, _ = _decode(file_path, encoding)
+        if img.shape[1:] != like.shape[1:]:
+            h, w = like.shape[1:]
+            raise input_error(file_path, f"is {img.shape[2]}×{img.shape[1]} pixels but {first} is {w}×{h}")
+        backlight[key] = img
+    return backlight
+
+
+def _read_calibration(raw: Any, folder: Path, path: Path) -> tuple[dict[str, Any], Path | None]:
+    """The calibration object (inline, or read from the file it names) and that file."""
+    if isinstance(raw, str):
+        cal_path = folder / check_file_name(raw, f"{path}: calibration")
+        data = read_json(cal_path)
+        if not isinstance(data, Mapping):
+            raise input_error(cal_path, "expected a JSON object (a matscan calibration)")
+        return dict(data), cal_path
+    if isinstance(raw, Mapping):
+        return dict(raw), None
+    raise input_error(path, f"calibration: expected a file name or an object, got {short_repr(raw)}")
 
 
 def load_capture(folder: str | Path, lights: Sequence[int] | None = None) -> Capture:
     """Read and check a capture folder.
 
     ``lights`` keeps only the images of those rig lights (all by default).
-    Errors name the file and the problem in one line.
+    Errors name the file and the problem in one line; nothing in the folder changes.
+    The calibration is read (and checked to be an object) but not applied: see
+    :func:`matscan.calibrate.apply_calibration`, which checks its fields.
     """
     folder = Path(folder)
-    if not folder.is_dir():
-        raise input_error(folder, "no such capture folder")
-    path = folder / "capture.json"
-    if not path.is_file():
-        raise input_error(folder, "no capture.json here (not a matscan capture folder)")
-    data = _load_json(path)
-    if not isinstance(data, Mapping):
-        raise input_error(path, "expected a JSON object")
-    for key in data:
-        if key not in _KEYS:
-            raise input_error(path, f"unknown key {key!r} (expected one of {', '.join(_KEYS)})")
-    for key in ("format", "rig", "images"):
-        if key not in data:
-            raise input_error(path, f"missing field {key!r}")
-    if data["format"] != CAPTURE_FORMAT:
-        raise input_error(path, f"format: expected {CAPTURE_FORMAT!r}, got {data['format']!r}")
-    try:
-        rig = resolve_rig(data["rig"], base=folder)
-    except MatscanError as exc:
-        raise input_error(path, str(exc)) from None
+    path, data = _read_document(folder)
+    rig = _read_rig(data["rig"], folder, path)
     encoding = data.get("encoding", "srgb")
     if encoding not in ENCODINGS:
-        raise input_error(path, f"encoding: {encoding!r} is not one of {', '.join(ENCODINGS)}")
-    field_mm = rig.field_mm
-    if "field_mm" in data:
-        f = data["field_mm"]
-        if (
-            not isinstance(f, Sequence)
-            or len(f) != 2
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in f)
-        ):
-            raise input_error(path, f"field_mm: expected two positive sizes (width, height) in mm, got {f!r}")
-        field_mm = (float(f[0]), float(f[1]))
+        raise input_error(path, f"encoding: {short_repr(encoding)} is not one of {', '.join(ENCODINGS)}")
+    field_mm = _read_field(data, rig, path)
+    chosen = _read_entries(data["images"], rig, path, lights)
+    calibration, calibration_file = None, None
+    if "calibration" in data:
+        calibration, calibration_file = _read_calibration(data["calibration"], folder, path)
+    meta: dict[str, Any] = {}
+    if "simulation" in data:
+        meta["simulation"] = check_object(data["simulation"], f"{path}: simulation")
 
-    entries = data["images"]
-    if not isinstance(entries, Sequence) or isinstance(entries, str) or not entries:
-        raise input_error(path, "images: expected a non-empty list of {light, file} entries")
-    keys = _IMAGE_KEYS_PER_IMAGE if rig.per_image_geometry else _IMAGE_KEYS_INDEXED
-    required = ("file", "light_position_mm", "camera_position_mm") if rig.per_image_geometry else ("light", "file")
-    seen_light: dict[int, int] = {}
-    seen_file: dict[str, int] = {}
-    chosen: list[tuple[int, Mapping[str, Any]]] = []
-    for i, entry in enumerate(entries):
-        where = f"{path}: images[{i}]"
-        if not isinstance(entry, Mapping):
-            raise MatscanError(f"{where}: expected an object with {', '.join(required)}")
-        for key in entry:
-            if key not in keys:
-                raise MatscanError(f"{where}: unknown key {key!r} (expected one of {', '.join(keys)})")
-        for key in required:
-            if key not in entry:
-                raise MatscanError(f"{where}: missing field {key!r}")
-        file = entry["file"]
-        if not isinstance(file, str) or not file:
-            raise MatscanError(f"{where}: file: expected a file name, got {file!r}")
-        if file in seen_file:
-            raise MatscanError(f"{where}: file {file!r} is listed twice (also images[{seen_file[file]}])")
-        seen_file[file] = i
-        if not rig.per_image_geometry:
-            k = entry["light"]
-            if not isinstance(k, int) or isinstance(k, bool) or not 0 <= k < len(rig.lights):
-                raise MatscanError(
-                    f"{where}: light {k!r} is not a light of rig {rig.name!r} (0 to {len(rig.lights) - 1})"
-                )
-            if k in seen_light:
-                raise MatscanError(f"{where}: light {k} appears twice (also images[{seen_light[k]}])")
-            seen_light[k] = i
-            if lights is not None and k not in lights:
-                continue
-        chosen.append((i, entry))
-    if not chosen:
-        raise input_error(path, f"none of the requested lights {list(lights or [])} is in this capture")
-
-    images, saturated, files, indices, geometry = [], [], [], [], []
-    size: tuple[int, int] | None = None
-    first = ""
-    for i, entry in chosen:
-        file_path = folder / entry["file"]
-        img, sat = _decode(file_path, encoding)
-        if size is None:
-            size, first = (img.shape[1], img.shape[2]), entry["file"]
-        elif (img.shape[1], img.shape[2]) != size:
-            raise input_error(file_path, f"is {img.shape[2]}×{img.shape[1]} pixels but {first} is {size[1]}×{size[0]}")
-        images.append(img)
-        saturated.append(sat)
-        files.append(entry["file"])
-        if rig.per_image_geometry:
-            where = f"{path}: images[{i}]"
-            template = rig.lights[0]
-            inten = entry.get("intensity", template.intensity)
-            light = Light(
-                position_mm=_position(entry["light_position_mm"], f"{where}.light_position_mm"),
-                intensity=tuple(float(v) for v in inten),
-                exponent=template.exponent,
-                aim_mm=template.aim_mm,
-            )
-            camera = _position(entry["camera_position_mm"], f"{where}.camera_position_mm")
-            geometry.append((light, camera))
-            indices.append(None)
-        else:
-            indices.append(int(entry["light"]))
-    if rig.per_image_geometry:
-        light_set = LightSet.from_lights([g[0] for g in geometry], [g[1] for g in geometry], rig.reference_distance_mm)
-    else:
-        light_set = rig.light_set(indices)
-
+    images, saturated = _read_images(folder, chosen, encoding)
     backlight: dict[str, Tensor] = {}
     if "backlight" in data:
-        bl = data["backlight"]
-        if not isinstance(bl, Mapping):
-            raise input_error(path, "backlight: expected an object with green and blue files")
-        for key in bl:
-            if key not in BACKLIGHT_KEYS:
-                raise input_error(path, f"backlight: unknown key {key!r} (expected {', '.join(BACKLIGHT_KEYS)})")
-        for key in ("green", "blue"):
-            if key not in bl:
-                raise input_error(path, f"backlight: missing {key!r}")
-        for key, file in bl.items():
-            img, _ = _decode(folder / str(file), encoding)
-            if (img.shape[1], img.shape[2]) != size:
-                raise input_error(
-                    folder / str(file), f"is {img.shape[2]}×{img.shape[1]} pixels but {first} is {size[1]}×{size[0]}"
-                )
-            backlight[key] = img
-
-    calibration = None
-    if "calibration" in data:
-        cal = data["calibration"]
-        if isinstance(cal, str):
-            calibration = _load_json(folder / cal)
-        elif isinstance(cal, Mapping):
-            calibration = dict(cal)
-        else:
-            raise input_error(path, "calibration: expected a file name or an object")
-
+        backlight = _read_backlight(data["backlight"], folder, path, encoding, images[0], chosen[0].file)
+    if rig.per_image_geometry:
+        geometry = [e.geometry for e in chosen if e.geometry is not None]
+        light_set = LightSet.from_lights([g[0] for g in geometry], [g[1] for g in geometry], rig.reference_distance_mm)
+    else:
+        light_set = rig.light_set([e.light for e in chosen if e.light is not None])
     return Capture(
         rig=rig,
         field_mm=field_mm,
         encoding=encoding,
-        images=torch.stack(images),
-        saturated=torch.stack(saturated),
-        light_indices=tuple(indices),
+        images=images,
+        saturated=saturated,
+        light_indices=tuple(e.light for e in chosen),
         lights=light_set,
-        files=tuple(files),
+        files=tuple(e.file for e in chosen),
         backlight=backlight,
         calibration=calibration,
         folder=folder,
-        meta={"simulation": data["simulation"]} if "simulation" in data else {},
+        meta=meta,
+        calibration_file=calibration_file,
     )
 
 
@@ -338,7 +379,7 @@ def write_capture(
     if rig_ref is None:
         rig_ref = rig.name if rig.name in BUILTIN_RIGS and builtin_rig(rig.name) == rig else None
     entries: list[dict[str, Any]] = []
-    with atomic_folder(folder, overwrite=overwrite) as tmp:
+    with claim_output(folder, "write_capture", overwrite=overwrite) as claim, claim.folder() as tmp:
         for n, img in enumerate(images):
             if rig.per_image_geometry:
                 if geometry is None:
@@ -375,5 +416,5 @@ def write_capture(
                 doc["backlight"][key] = file
         if extra:
             doc.update(extra)
-        (tmp / "capture.json").write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+        (tmp / "capture.json").write_text(dumps(doc, "capture.json"), encoding="utf-8")
     return Path(folder)

@@ -83,7 +83,9 @@ def apply_camera(
     noisy = camera.read_noise > 0
     z = torch.randn(radiance.shape, generator=generator, dtype=radiance.dtype) if noisy else radiance
     # numbers as tensors, so the compiled kernel is not specialised to each value
-    scalars = torch.tensor([camera.exposure, camera.read_noise, camera.full_well], dtype=radiance.dtype)
+    # (the top code too: some torch versions cannot trace 1 << bits once bits is symbolic)
+    top = float((1 << camera.bits) - 1) if camera.bits != 32 else 1.0
+    scalars = torch.tensor([camera.exposure, camera.read_noise, camera.full_well, top], dtype=radiance.dtype)
     srgb = camera.encoding == "srgb" and camera.bits != 32
     levels = _srgb_levels(camera.bits, radiance.dtype) if srgb else scalars
     args = (radiance, z, scalars, levels, noisy, camera.bits, srgb)
@@ -105,14 +107,13 @@ def _srgb_levels(bits: int, dtype: torch.dtype) -> Tensor:
 
 
 def _sensor(radiance: Tensor, z: Tensor, scalars: Tensor, levels: Tensor, noisy: bool, bits: int, srgb: bool) -> Tensor:
-    exposure, read_noise, full_well = scalars[0], scalars[1], scalars[2]
+    exposure, read_noise, full_well, top = scalars[0], scalars[1], scalars[2], scalars[3]
     x = radiance * exposure
     if noisy:
         x = x + torch.sqrt(x.clamp_min(0) / full_well + read_noise**2) * z
     if bits == 32:
         return x
     x = x.clamp(0, 1)
-    top = float((1 << bits) - 1)
     if srgb:
         return levels[torch.round(linear_to_srgb(x.float()) * top).long()]
     return torch.round(x * top) / top
@@ -190,14 +191,35 @@ def simulate(
     geometry: Sequence[tuple[Sequence[float], Sequence[float]]] | None = None,
     overwrite: bool = False,
     progress: bool = False,
+    inputs: Sequence[str | Path] = (),
+    overwrite_any: bool = False,
 ) -> Path:
     """Render a capture folder of ``maps`` through ``rig`` (``matscan simulate``).
 
     ``lights`` picks rig lights (all by default). A rig with per-image geometry
     takes ``geometry`` (light, camera positions per photo; a 3 × 3 grid of phone
     positions by default). Backlight photos are added when the rig has a
-    backlight and the maps have alpha.
+    backlight and the maps have alpha. ``out`` is checked and locked before the
+    rendering (:func:`matscan.outputs.claim_output`; never one of ``inputs``).
     """
+    from matscan.outputs import claim_output
+
+    with claim_output(out, "simulate", inputs, overwrite=overwrite, overwrite_any=overwrite_any):
+        return _simulate(maps, rig, out, lights, camera, seed, size, geometry, overwrite, progress)
+
+
+def _simulate(
+    maps: MapSet,
+    rig: Rig,
+    out: str | Path,
+    lights: Sequence[int] | None,
+    camera: CameraModel,
+    seed: int,
+    size: int | None,
+    geometry: Sequence[tuple[Sequence[float], Sequence[float]]] | None,
+    overwrite: bool,
+    progress: bool,
+) -> Path:
     maps.check()
     if size is not None:
         if size < 8:

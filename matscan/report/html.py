@@ -21,8 +21,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from matscan.atomic import write_text
 from matscan.capture import Capture
 from matscan.color import linear_to_srgb
+from matscan.jsonfile import dumps
 from matscan.mapset import MapSet
 from matscan.render import render, surface_points
 from matscan.report.sheet import to_display
@@ -149,9 +151,7 @@ def write_report(path: Path, capture: Capture, maps: MapSet, record: dict[str, A
         .replace("{{WARNINGS}}", warnings)
         .replace("{{MAPS}}", "\n".join(map_cells))
         .replace("{{LIGHTS}}", light_rows)
-        .replace("{{VIEWER_CONFIG}}", json.dumps(viewer_cfg))
+        .replace("{{VIEWER_CONFIG}}", dumps(viewer_cfg, "report viewer", indent=None))
         .replace("{{VIEWER_JS}}", (HERE / "viewer.js").read_text(encoding="utf-8"))
     )
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(page, encoding="utf-8")
-    tmp.replace(path)
+    write_text(path, page)

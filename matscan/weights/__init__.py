@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from matscan.errors import MatscanError
+from matscan.jsonfile import short_repr
 
 ROOT = Path(__file__).parent
 SHIPPED = {"default": "dome24-cpu.safetensors"}
@@ -17,6 +18,8 @@ SHIPPED = {"default": "dome24-cpu.safetensors"}
 def model_path(name_or_path: str | Path) -> Path:
     """The file of a shipped model name, or the given path to a weights file."""
     text = str(name_or_path)
+    if not text or not text.isprintable():
+        raise MatscanError(f"model: {short_repr(text)} is not a model name or a usable file name")
     if text in SHIPPED:
         path = ROOT / SHIPPED[text]
         if not path.is_file():
@@ -29,7 +32,11 @@ def model_path(name_or_path: str | Path) -> Path:
 
 
 def load_model(name_or_path: str | Path = "default"):
-    """(MapNets in eval mode, metadata) for a shipped name or a weights file."""
+    """(MapNets in eval mode, metadata) for a shipped name or a weights file.
+
+    The file's metadata is checked field by field (:func:`matscan.train.load_weights`):
+    a damaged or foreign file is a one-line error naming it.
+    """
     from matscan.train import load_weights
 
     return load_weights(model_path(name_or_path))

@@ -1,0 +1,309 @@
+"""Where a command may write: every output checked before the work, never an input.
+
+A command claims its output first (:func:`claim_output`), before it reads photos
+or computes anything:
+
+- the output must not be, contain, or lie inside any of the command's inputs
+  (capture folder and every file its ``capture.json`` names, map set, calibration
+  file, weights file), nor be the current folder or one holding it;
+- a file that a ``capture.json`` beside it lists (or that ``capture.json`` itself)
+  is never replaced, whatever the flags;
+- an existing folder is replaced only with ``--overwrite``, and only when it holds
+  nothing but a previous matscan output (every file listed in its ``matscan.json``,
+  :func:`foreign_entries`), unless ``--overwrite-any`` is given too; an existing
+  file is replaced only with ``--overwrite``;
+- the nearest existing folder above it must be a writable folder, the name short
+  enough for the file system with room for a temporary name, and (once the input
+  size is known, :meth:`OutputClaim.check_space`) the free space plausible;
+- the output is locked for the rest of the command, so a second writer fails at
+  once, and stale temporaries of killed writers are removed.
+
+Then :meth:`OutputClaim.folder` / :meth:`OutputClaim.file` write it atomically
+(:mod:`matscan.atomic`). Every refusal is one :class:`MatscanError` line.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from matscan.atomic import TMP_NAME_EXTRA, atomic_file, atomic_folder, clean_stale, held, output_lock
+from matscan.errors import MatscanError, input_error
+from matscan.jsonfile import dumps
+
+RECORD = "matscan.json"
+OUTPUT_FORMAT = "matscan-output/1"
+#: What a matscan reconstruction wrote before its ``matscan.json`` listed its files.
+_LEGACY_OUTPUT_NAMES = {
+    "matscan.json",
+    "mapset.json",
+    "report.html",
+    "material.gltf",
+    "material.mtlx",
+    "normal_directx.png",
+    "exr",
+}
+_LEGACY_MAP_STEMS = {
+    "diffuse",
+    "specular",
+    "roughness",
+    "normal",
+    "alpha",
+    "metallic",
+    "basecolor",
+    "emissive",
+    "height",
+    "base_color",
+    "metallic_roughness",
+    "specular_color",
+}
+
+
+def _within(inner: Path, outer: Path) -> bool:
+    return inner == outer or outer in inner.parents
+
+
+def _resolve(path: Path) -> Path:
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError) as exc:  # symlink loops
+        raise input_error(path, f"cannot resolve this path ({exc})") from None
+
+
+def capture_inputs(folder: str | Path) -> list[Path]:
+    """The capture folder and every file its ``capture.json`` names (rig, calibration,
+    photos, backlight): what a command reading it must never write over. A
+    malformed ``capture.json`` gives just the folder (reading it reports the fault)."""
+    folder = Path(folder)
+    found = [folder]
+    try:
+        doc = json.loads((folder / "capture.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return found
+    if not isinstance(doc, dict):
+        return found
+    names: list[Any] = []
+    images = doc.get("images")
+    if isinstance(images, list):
+        names += [e.get("file") for e in images if isinstance(e, dict)]
+    if isinstance(doc.get("backlight"), dict):
+        names += list(doc["backlight"].values())
+    names += [doc.get("rig"), doc.get("calibration")]
+    for name in names:
+        if isinstance(name, str) and name and "\x00" not in name:
+            found.append(folder / name)
+    cal = doc.get("calibration")
+    if isinstance(cal, str) and "\x00" not in cal:  # flat fields beside the calibration file
+        try:
+            cal_doc = json.loads((folder / cal).read_text(encoding="utf-8"))
+            flats = cal_doc.get("flat_fields", {}) if isinstance(cal_doc, dict) else {}
+            if isinstance(flats, dict):
+                found += [(folder / cal).parent / f for f in flats.values() if isinstance(f, str) and "\x00" not in f]
+        except (OSError, ValueError, RecursionError):
+            pass
+    return found
+
+
+def _capture_files_here(path: Path) -> set[str]:
+    """Names a ``capture.json`` in ``path``'s folder lists (and ``capture.json``)."""
+    manifest = path.parent / "capture.json"
+    if not manifest.is_file():
+        return set()
+    return {p.name for p in capture_inputs(path.parent)[1:] if p.parent == path.parent} | {"capture.json"}
+
+
+def foreign_entries(folder: Path) -> list[str]:
+    """Files in ``folder`` (relative paths) that no ``matscan.json`` there says matscan
+    wrote; empty for a previous matscan output. A folder without a readable
+    ``matscan.json`` is all foreign."""
+    entries = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir())
+    try:
+        record = json.loads((folder / RECORD).read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return entries
+    if not isinstance(record, dict):
+        return entries
+    listed = record.get("files")
+    if isinstance(listed, list):
+        known = {f for f in listed if isinstance(f, str)} | {RECORD}
+        return [e for e in entries if e not in known]
+    if not str(record.get("format", "")).startswith("matscan-reconstruction/"):
+        return entries
+    foreign = []
+    for e in entries:  # an older reconstruction: its known file names only
+        top = e.split("/", 1)[0]
+        if top in _LEGACY_OUTPUT_NAMES or Path(top).stem in _LEGACY_MAP_STEMS:
+            continue
+        foreign.append(e)
+    return foreign
+
+
+def write_record_files(folder: Path, command: str) -> None:
+    """List every file of the finished output ``folder`` in its ``matscan.json``
+    (created, with the command's name, when the command wrote none)."""
+    from matscan import __version__
+
+    path = folder / RECORD
+    if path.is_file():
+        record = json.loads(path.read_text(encoding="utf-8"))
+    else:
+        record = {"format": OUTPUT_FORMAT, "command": command, "matscan_version": __version__}
+    record["files"] = sorted(
+        p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir() and p.name != RECORD
+    )
+    path.write_text(dumps(record, RECORD), encoding="utf-8")
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not p.exists():
+        if p.parent == p:
+            break
+        p = p.parent
+    return p
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        return 255
+
+
+def check_destination(
+    out: str | Path,
+    inputs: Iterable[str | Path] = (),
+    kind: str = "folder",
+    overwrite: bool = False,
+    overwrite_any: bool = False,
+    flag: str = "--out",
+) -> Path:
+    """Check an output path before any work (module doc); return it resolved."""
+    if kind not in ("folder", "file"):
+        raise ValueError(f"kind {kind!r}")
+    text = str(out)
+    if not text or "\x00" in text:
+        raise MatscanError(f"{flag}: {text!r} is not a usable path")
+    given = Path(text)
+    if given.is_symlink():
+        if not given.exists():
+            raise input_error(given, "is a dangling symbolic link; give a real path for the output")
+        raise input_error(given, "is a symbolic link; give the real path of the output")
+    path = _resolve(given)
+    if path.parent == path:
+        raise input_error(given, "is the root of the file system; choose a folder for the output")
+    cwd = _resolve(Path.cwd())
+    if _within(cwd, path):
+        raise input_error(given, "is the current folder or holds it; choose a new folder for the output")
+    for item in inputs:
+        inp = _resolve(Path(item))
+        if _within(path, inp) or _within(inp, path):
+            how = "is" if path == inp else ("lies inside" if _within(path, inp) else "contains")
+            raise input_error(
+                given, f"{how} the input {item}; matscan never writes over its inputs (choose another {flag})"
+            )
+    if kind == "file" and path.name in _capture_files_here(path):
+        raise input_error(given, f"belongs to the capture in {path.parent}; matscan never replaces a capture's files")
+    anc = _nearest_existing(path.parent)
+    if not anc.is_dir():
+        raise input_error(anc, f"is not a folder, so {flag} {given} cannot be created")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise input_error(anc, "is not writable; choose another place for the output")
+    limit = _name_max(anc)
+    if len(os.fsencode(path.name)) + TMP_NAME_EXTRA + len(path.suffix) > limit:
+        raise input_error(
+            given,
+            f"the name is {len(path.name)} characters; this file system allows {limit}, and matscan needs "
+            f"{TMP_NAME_EXTRA + len(path.suffix)} more for a temporary name",
+        )
+    if path.exists():
+        if kind == "file":
+            if path.is_dir():
+                raise input_error(given, "is a folder; give a file name")
+            if not overwrite:
+                raise input_error(given, "exists (pass --overwrite to replace it)")
+        else:
+            if not path.is_dir():
+                raise input_error(given, "exists and is not a folder")
+            if any(path.iterdir()):
+                if not overwrite:
+                    raise input_error(
+                        given, "folder exists and is not empty (choose another --out, or pass --overwrite)"
+                    )
+                foreign = foreign_entries(path)
+                if foreign and not overwrite_any:
+                    more = f" and {len(foreign) - 1} more" if len(foreign) > 1 else ""
+                    raise input_error(
+                        given,
+                        f"holds {foreign[0]}{more}, which no matscan.json there lists as matscan's output; "
+                        "--overwrite replaces only previous matscan outputs (move those files, or pass "
+                        "--overwrite-any to delete them)",
+                    )
+    return path
+
+
+@dataclass
+class OutputClaim:
+    """A checked, locked output (from :func:`claim_output`)."""
+
+    path: Path
+    kind: str
+    overwrite: bool
+    command: str
+
+    def check_space(self, need_bytes: int) -> None:
+        """Refuse (before the work) when the file system has less free space than the
+        output is expected to take."""
+        anc = _nearest_existing(self.path)
+        free = shutil.disk_usage(anc).free
+        if free < need_bytes:
+            raise input_error(
+                self.path,
+                f"needs about {need_bytes / 2**20:.0f} MiB but only {free / 2**20:.0f} MiB are free there",
+            )
+
+    @contextmanager
+    def folder(self) -> Iterator[Path]:
+        """A temporary folder that becomes the output when the block succeeds."""
+        with atomic_folder(self.path, overwrite=self.overwrite) as tmp:
+            yield tmp
+            write_record_files(tmp, self.command)
+
+    @contextmanager
+    def file(self) -> Iterator[Path]:
+        """A temporary file name that becomes the output when the block succeeds."""
+        with atomic_file(self.path) as tmp:
+            yield tmp
+
+
+@contextmanager
+def claim_output(
+    out: str | Path,
+    command: str,
+    inputs: Iterable[str | Path] = (),
+    kind: str = "folder",
+    overwrite: bool = False,
+    overwrite_any: bool = False,
+    flag: str = "--out",
+) -> Iterator[OutputClaim]:
+    """Check ``out`` (:func:`check_destination`), lock it, clear stale temporaries,
+    and yield an :class:`OutputClaim` for the rest of the command."""
+    if held(_resolve(Path(out))):  # claimed earlier in this command, and checked then
+        with output_lock(_resolve(Path(out))):
+            yield OutputClaim(_resolve(Path(out)), kind, overwrite, command)
+        return
+    path = check_destination(out, inputs, kind, overwrite, overwrite_any, flag)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise input_error(path.parent, f"cannot create this folder ({exc.strerror})") from None
+    with output_lock(path):
+        check_destination(out, inputs, kind, overwrite, overwrite_any, flag)  # again, now that it is ours
+        clean_stale(path)
+        yield OutputClaim(path, kind, overwrite, command)

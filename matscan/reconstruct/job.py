@@ -1,0 +1,301 @@
+"""The ``reconstruct`` job: checks, run, write, record.
+
+1. **Check** the capture (:func:`check_capture`): saturated or black photos,
+   lights missing from the rig's full set, what reading and calibrating found;
+   each becomes a warning that says what to do.
+2. **Networks** (:mod:`matscan.reconstruct.networks`): the start, and the prior.
+3. **Solver** (:mod:`matscan.reconstruct.solver`): refinement by inverse rendering.
+4. **Surface** (:mod:`matscan.reconstruct.surface`): alpha, height, metal/rough.
+
+:func:`reconstruct` claims its output before reading anything
+(:mod:`matscan.outputs`), then writes the maps (design.md conventions), the
+exports, the report and ``matscan.json`` (rig, inputs, model, conventions,
+timings, mm per pixel, version) atomically.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from matscan import __version__
+from matscan.capture import Capture, load_capture
+from matscan.errors import MatscanError
+from matscan.jsonfile import dumps
+from matscan.mapset import CONVENTIONS, MapSet, write_maps
+from matscan.nets import MapNets
+from matscan.outputs import RECORD
+from matscan.reconstruct.networks import predict_maps
+from matscan.reconstruct.solver import flat_start, refine_maps, rerender_error
+from matscan.reconstruct.surface import alpha_from_backlight, height_from_normals
+
+REFINE_CHOICES = ("auto", "on", "off")
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """How a capture is reconstructed."""
+
+    model: str = "default"
+    refine: str = "auto"  # "auto": on from REFINE_AUTO_PHOTOS photos, or without networks; "on"; "off"
+    refine_steps: int = 150
+    refine_lr: float = 0.02
+    prior_weight: float = 0.05
+    smooth_weight: float = 0.01
+    tile: int = 512
+    overlap: int = 64
+    refine_tile: int = 128
+    saturation_warn: float = 0.05
+    emissive: bool = False  # also fit an emissive map (light the sample gives off under any LED)
+    validate: int = 0  # leave this many photos out, reconstruct, and report their re-rendering error
+    exr: bool = False  # also write every map as float EXR under exr/
+    directx_normals: bool = False  # also write normal_directx.png
+
+    def __post_init__(self) -> None:
+        """Refuse settings no reconstruction can use, before any work."""
+        if self.refine not in REFINE_CHOICES:
+            raise MatscanError(f"refine: {self.refine!r} is not one of {', '.join(REFINE_CHOICES)}")
+        for name, low in (("refine_steps", 1), ("tile", 16), ("overlap", 0), ("refine_tile", 8), ("validate", 0)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise MatscanError(f"{name}: {value!r} must be an integer of at least {low}")
+        for name in ("refine_lr", "prior_weight", "smooth_weight", "saturation_warn"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise MatscanError(f"{name}: {value!r} must be a finite number of at least 0")
+        if self.refine_lr == 0:
+            raise MatscanError("refine_lr: must be above 0")
+
+
+#: ``--refine auto`` refines captures with at least this many photos. Measured in
+#: docs/results.md (11 materials, Table 4 subsets): from 10 photos up refinement lowers
+#: every error of the networks' maps but specular's (a tie) and halves the re-rendering
+#: error under novel lights; with 1–3 it raises nearly all of them, and with 6 it trades
+#: 1.7° → 5.1° normal error for better diffuse and roughness.
+REFINE_AUTO_PHOTOS = 10
+
+
+@dataclass
+class Result:
+    maps: MapSet
+    warnings: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    intensity_scale: float = 1.0
+    refine_history: list[float] = field(default_factory=list)
+
+
+#: A photo whose 99th-percentile linear value is below this is black: 8-bit sRGB code 4 is
+#: linear 0.0012, so nothing in it rose above the sensor's noise (a lens cap, an LED that did not light).
+DARK_PHOTO = 0.002
+
+
+def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
+    """Warnings about a capture, each saying what to do: saturated or black photos,
+    missing lights, and what reading and calibrating it found (``capture.meta["warnings"]``)."""
+    warnings = list(capture.meta.get("warnings", []))
+    dark = []
+    for file, img, sat in zip(capture.files, capture.images, capture.saturated, strict=True):
+        frac = float(sat.float().mean())
+        if frac > 0.5:
+            warnings.append(
+                f"{file}: {frac:.0%} of pixels saturated, so it says almost nothing; lower the exposure and retake it"
+            )
+        elif frac > cfg.saturation_warn:
+            warnings.append(
+                f"{file}: {frac:.1%} of pixels saturated; lower the exposure (they are left out of the fit)"
+            )
+        step = max(1, img.numel() // 1_000_000)  # a quantile of up to a million values is enough
+        if float(torch.quantile(img.reshape(-1)[::step], 0.99)) < DARK_PHOTO:
+            dark.append(file)
+    if dark and len(dark) == len(capture.files):
+        warnings.append(
+            "every photo is black (was the lens cap on, or the lights off?); the maps mean nothing — retake the capture"
+        )
+    else:
+        warnings += [f"{f}: the photo is black (did its light fail?); retake it or leave it out" for f in dark]
+    if not capture.rig.per_image_geometry:
+        missing = sorted(set(range(len(capture.rig.lights))) - {k for k in capture.light_indices if k is not None})
+        if missing:
+            warnings.append(
+                f"lights {', '.join(map(str, missing))} of rig {capture.rig.name} are missing; "
+                "reconstructing from the other photos"
+            )
+    return warnings
+
+
+def reconstruct_capture(
+    capture: Capture, cfg: ReconstructConfig = ReconstructConfig(), nets: MapNets | None = None, progress: bool = False
+) -> Result:
+    """Maps from a loaded capture (no files written)."""
+    timings: dict[str, float] = {}
+    warnings = check_capture(capture, cfg)
+    t0 = time.perf_counter()
+    if nets is not None and not capture.rig.per_image_geometry:
+        start = predict_maps(nets, capture, cfg.tile, cfg.overlap, progress)
+    else:
+        if nets is not None:
+            warnings.append(
+                f"rig {capture.rig.name}: the networks do not apply to per-image geometry; "
+                "starting refinement from flat maps"
+            )
+        start = flat_start(capture)
+    timings["networks_s"] = time.perf_counter() - t0
+    used_nets = nets is not None and not capture.rig.per_image_geometry
+    refine = cfg.refine == "on" or (
+        cfg.refine == "auto" and (not used_nets or len(capture.files) >= REFINE_AUTO_PHOTOS)
+    )
+    result = Result(start, warnings, timings)
+    if refine:
+        t0 = time.perf_counter()
+        maps, scale, hist = refine_maps(
+            start,
+            capture,
+            cfg.refine_steps,
+            cfg.refine_lr,
+            cfg.prior_weight,
+            cfg.smooth_weight,
+            cfg.refine_tile,
+            emissive=cfg.emissive,
+            progress=progress,
+        )
+        timings["refine_s"] = time.perf_counter() - t0
+        result.maps, result.intensity_scale, result.refine_history = maps, scale, hist
+    elif cfg.emissive:
+        warnings.append("--emissive needs refinement; no emissive map was fitted")
+    result.maps = with_special_maps(result.maps, capture, warnings)
+    return result
+
+
+def with_special_maps(maps: MapSet, capture: Capture, warnings: list[str]) -> MapSet:
+    """Add alpha (from backlight photos, when the capture has them), height (from the
+    normals) and the metal/rough workflow (basecolor, metallic)."""
+    from matscan.brdf import specular_to_metallic
+
+    extra = {}
+    if capture.backlight:
+        try:
+            extra["alpha"] = alpha_from_backlight(capture.backlight)
+        except MatscanError as exc:
+            warnings.append(f"{exc}; no alpha map")
+    extra["height"] = height_from_normals(maps.normal, capture.mm_per_pixel)
+    extra["basecolor"], extra["metallic"] = specular_to_metallic(maps.diffuse, maps.specular)
+    present = maps.present()
+    present.update(extra)
+    return MapSet(**present)
+
+
+def subset_capture(capture: Capture, positions: list[int]) -> Capture:
+    """The same capture with only some of its photos (positions in its image list)."""
+    from dataclasses import replace
+
+    return replace(
+        capture,
+        images=capture.images[positions],
+        saturated=capture.saturated[positions],
+        light_indices=tuple(capture.light_indices[i] for i in positions),
+        lights=capture.lights.select(positions),
+        files=tuple(capture.files[i] for i in positions),
+    )
+
+
+def leave_out_validation(capture: Capture, count: int, cfg: ReconstructConfig, nets: MapNets | None) -> dict:
+    """Self-validation without ground truth: reconstruct without ``count`` photos
+    (spread evenly over the capture) and measure the re-rendering RMSE on them."""
+    n = len(capture.files)
+    if not 1 <= count <= n - 1:
+        raise MatscanError(f"--validate: {count} must be between 1 and {n - 1} (the capture has {n} photos)")
+    left = sorted({round((i + 0.5) * n / count - 0.5) for i in range(count)})
+    kept = [i for i in range(n) if i not in left]
+    res = reconstruct_capture(subset_capture(capture, kept), cfg, nets)
+    return {
+        "left_out": [capture.files[i] for i in left],
+        "rmse_left_out": rerender_error(res.maps, capture, left, res.intensity_scale),
+        "rmse_fitted": rerender_error(res.maps, capture, kept, res.intensity_scale),
+    }
+
+
+def reconstruct(
+    capture_path: str | Path,
+    out: str | Path,
+    cfg: ReconstructConfig = ReconstructConfig(),
+    overwrite: bool = False,
+    progress: bool = False,
+    overwrite_any: bool = False,
+) -> dict[str, Any]:
+    """``matscan reconstruct``: read a capture, write maps and ``matscan.json``; return the record.
+
+    The output is checked and locked before anything is read
+    (:func:`matscan.outputs.claim_output`): it never touches the capture, and
+    ``overwrite`` replaces only a previous matscan output (any folder with
+    ``overwrite_any`` too).
+    """
+    t_all = time.perf_counter()
+    from matscan.calibrate import apply_calibration
+    from matscan.outputs import capture_inputs, claim_output
+    from matscan.weights import model_path
+
+    capture_path = Path(capture_path)
+    inputs = capture_inputs(capture_path)
+    if cfg.model != "none":
+        inputs.append(model_path(cfg.model))
+    with claim_output(out, "reconstruct", inputs, overwrite=overwrite, overwrite_any=overwrite_any) as claim:
+        capture = apply_calibration(load_capture(capture_path))
+        h, w = capture.size
+        claim.check_space(output_bytes(h, w, cfg))
+        nets, model_name, networks = None, "none", {}
+        if cfg.model != "none":
+            from matscan.train import training_record
+            from matscan.weights import load_model
+
+            nets, model_meta = load_model(cfg.model)
+            file = model_path(cfg.model).resolve()  # relative to this folder, so the record moves with it
+            model_name, networks = os.path.relpath(file, claim.path), training_record(model_meta)
+        validation = leave_out_validation(capture, cfg.validate, cfg, nets) if cfg.validate else None
+        res = reconstruct_capture(capture, cfg, nets, progress)
+        positions = list(range(len(capture.files)))
+        error = rerender_error(res.maps, capture, positions, res.intensity_scale)
+        record = {
+            "format": "matscan-reconstruction/1",
+            "matscan_version": __version__,
+            "capture": os.path.relpath(capture_path.resolve(), claim.path),  # relative to this folder
+            "rig": capture.rig.name,
+            "inputs": [{"file": f, "light": k} for f, k in zip(capture.files, capture.light_indices, strict=True)],
+            "size_px": [w, h],
+            "field_mm": list(capture.field_mm),
+            "mm_per_pixel": list(capture.mm_per_pixel),
+            "model": {"name": cfg.model, "file": model_name, "networks": networks},
+            "config": asdict(cfg),
+            "refined": bool(res.refine_history),
+            "intensity_scale": res.intensity_scale,
+            "rerender_rmse": error,
+            "warnings": res.warnings,
+            "conventions": CONVENTIONS,
+            "timings_s": {k: round(v, 3) for k, v in res.timings.items()},
+        }
+        if validation is not None:
+            record["validation"] = validation
+        dumps(record, RECORD)  # a non-finite number is refused here, before any file is written
+        with claim.folder() as tmp:
+            write_maps(tmp, res.maps)
+            from matscan.export import export_all
+
+            record["exports"] = export_all(tmp, res.maps, capture.field_mm, cfg.exr, cfg.directx_normals)
+            from matscan.report.html import write_report
+
+            write_report(tmp / "report.html", capture, res.maps, record, res.intensity_scale)
+            record["timings_s"]["total_s"] = round(time.perf_counter() - t_all, 3)
+            (tmp / RECORD).write_text(dumps(record, RECORD), encoding="utf-8")
+    return record
+
+
+def output_bytes(h: int, w: int, cfg: ReconstructConfig) -> int:
+    """A generous estimate of what a reconstruction of H×W pixels writes: about ten
+    16-bit maps, their glTF textures, the report, and float EXRs when asked."""
+    per_px = 64 + (60 if cfg.exr else 0)
+    return h * w * per_px + (8 << 20)

@@ -1,0 +1,188 @@
+"""The solver: maps fitted to the photos by inverse rendering.
+
+Per-pixel maps, initialised from the networks (or from :func:`flat_start`), are
+fitted to the photos through the differentiable renderer (L1 in log space,
+saturated pixels masked), with a prior term holding each map near its start
+where the photos say little, and a light smoothness term. A capture whose light
+intensity is not calibrated (the ``flash`` rig) gets one intensity scale fitted
+with the maps. Work is done in pixel tiles, so memory stays bounded at any size.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from tqdm import tqdm
+
+from matscan.capture import Capture
+from matscan.mapset import MapSet
+from matscan.render import flat_albedo, flat_irradiance, render, surface_points
+from matscan.rig import LightSet
+
+LOG_EPS = 0.01
+
+
+def flat_start(capture: Capture) -> MapSet:
+    """Maps to start refinement from without networks: albedo from photo ÷ flat
+    irradiance (:func:`matscan.render.flat_albedo`), flat normal, roughness 0.5,
+    specular 0.04."""
+    h, w = capture.size
+    e = flat_irradiance(capture.lights, surface_points(capture.field_mm, (h, w)))
+    rho = flat_albedo(capture.images, e)
+    normal = torch.zeros(3, h, w)
+    normal[2] = 1
+    return MapSet(rho, torch.full((3, h, w), 0.04), torch.full((1, h, w), 0.5), normal)
+
+
+def _to_params(maps: MapSet) -> dict[str, Tensor]:
+    n = maps.normal
+    nz = n[2:3].clamp_min(0.05)
+    return {
+        "diffuse": maps.diffuse.clone(),
+        "specular": maps.specular.clone(),
+        "roughness": maps.roughness.clone(),
+        "slope": torch.cat([n[0:1] / nz, n[1:2] / nz]),  # n ∝ (sx, sy, 1)
+    }
+
+
+def _to_maps(p: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    d = p["diffuse"].clamp(0, 1)
+    s = p["specular"].clamp(0, 1)
+    r = p["roughness"].clamp(0.02, 1)
+    sl = p["slope"]
+    n = torch.cat([sl, torch.ones_like(sl[:1])], dim=-3)
+    n = n / n.norm(dim=-3, keepdim=True)
+    return d, s, r, n
+
+
+def refine_maps(
+    start: MapSet,
+    capture: Capture,
+    steps: int = 150,
+    lr: float = 0.02,
+    prior_weight: float = 0.05,
+    smooth_weight: float = 0.01,
+    tile: int = 128,
+    fit_intensity: bool | None = None,
+    lights_used: list[int] | None = None,
+    emissive: bool = False,
+    progress: bool = False,
+) -> tuple[MapSet, float, list[float]]:
+    """Fit per-pixel maps to the photos by inverse rendering (module doc, step 3).
+
+    ``lights_used``: which photos (positions in the capture) to fit; all by default.
+    ``emissive``: also fit a per-pixel emission added to every photo (non-negative).
+    Returns (maps, intensity scale, mean data loss per step over the first tile).
+    """
+    h, w = capture.size
+    used = list(range(len(capture.files))) if lights_used is None else list(lights_used)
+    lights = capture.lights.select(used)
+    photos = capture.images[used]
+    valid = (~capture.saturated[used]).float()
+    if fit_intensity is None:
+        fit_intensity = capture.rig.per_image_geometry
+    points_all = surface_points(capture.field_mm, (h, w))
+    scale = torch.zeros(())  # log intensity scale
+    if fit_intensity:  # one global scale, from the starting maps
+        scale = _fit_scale(start, photos, valid, lights, points_all)
+    out = {
+        name: t.clone() for name, t in start.present().items() if name in ("diffuse", "specular", "roughness", "normal")
+    }
+    if emissive:
+        out["emissive"] = torch.zeros(3, h, w)
+    history: list[float] = []
+    tiles = [(r, c) for r in range(0, h, tile) for c in range(0, w, tile)]
+    for t_index, (r0, c0) in enumerate(tqdm(tiles, desc="refine", unit="tile", disable=not progress, leave=False)):
+        th, tw = min(tile, h - r0), min(tile, w - c0)
+        crop = start.crop(r0, c0, th, tw)
+        params = _to_params(crop)
+        if emissive:
+            params["emissive"] = torch.zeros(3, th, tw)
+        params = {k: v.requires_grad_() for k, v in params.items()}
+        init = {k: v.detach().clone() for k, v in params.items()}
+        opt = torch.optim.Adam(params.values(), lr=lr)
+        target = torch.log(LOG_EPS + photos[..., r0 : r0 + th, c0 : c0 + tw])
+        mask = valid[..., r0 : r0 + th, c0 : c0 + tw]
+        pts = points_all[r0 : r0 + th, c0 : c0 + tw]
+        k = float(scale.exp())
+        for _ in range(steps):
+            d, s, r, n = _to_maps(params)
+            img = render(d, s, r, n, lights, pts) * k
+            if emissive:
+                img = img + params["emissive"].clamp_min(0)
+            data = ((torch.log(LOG_EPS + img) - target).abs() * mask).sum() / mask.sum().clamp_min(1) / 3
+            prior = sum(((params[key] - init[key]) ** 2).mean() for key in params)
+            smooth = sum(
+                (params[key][..., 1:, :] - params[key][..., :-1, :]).abs().mean()
+                + (params[key][..., :, 1:] - params[key][..., :, :-1]).abs().mean()
+                for key in ("diffuse", "roughness", "specular")
+            )
+            loss = data + prior_weight * prior + smooth_weight * smooth
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            if t_index == 0:
+                history.append(float(data.detach()))
+        d, s, r, n = (t.detach() for t in _to_maps(params))
+        for name, t in (("diffuse", d), ("specular", s), ("roughness", r), ("normal", n)):
+            out[name][..., r0 : r0 + th, c0 : c0 + tw] = t
+        if emissive:
+            out["emissive"][..., r0 : r0 + th, c0 : c0 + tw] = params["emissive"].detach().clamp_min(0)
+    extra = {k: v for k, v in start.present().items() if k not in out}
+    return MapSet(**out, **extra), float(scale.exp()), history
+
+
+def _fit_scale(
+    start: MapSet, photos: Tensor, valid: Tensor, lights: LightSet, points: Tensor, steps: int = 150, size: int = 48
+) -> Tensor:
+    """Log intensity scale k of an uncalibrated capture.
+
+    Diffuse light only fixes k·ρ; the highlights fix k, because dielectric F0 is
+    known (0.04): on a downsampled image, fit one k and one roughness, with flat
+    normals, F0 = 0.04 and the albedo that best explains each pixel given k (the
+    median over photos of photo ÷ (k · irradiance) minus the specular part), by
+    minimising the log-space L1 over unsaturated pixels (robust to the few metal
+    pixels that break the F0 assumption). Dielectric F0 spans about 0.03–0.05, so
+    the scale is known to about ±25% — when the highlights are not saturated (they
+    are masked, and with them goes what fixes the scale). A calibrated capture
+    needs none of this.
+    """
+    h, w = photos.shape[-2:]
+    factor = max(1, max(h, w) // size)
+    if factor > 1:
+        photos = F.avg_pool2d(photos, factor)
+        valid = (F.avg_pool2d(valid, factor) > 0.999).float()
+        points = F.avg_pool2d(points.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0)
+    hh, ww = photos.shape[-2:]
+    normal = torch.zeros(3, hh, ww)
+    normal[2] = 1
+    f0 = torch.full((3, hh, ww), 0.04)
+    irr = flat_irradiance(lights, points)
+    log_k = torch.zeros((), requires_grad=True)
+    rough = torch.zeros((), requires_grad=True)  # logit of roughness
+    opt = torch.optim.Adam([log_k, rough], lr=0.05)
+    target = torch.log(LOG_EPS + photos)
+    for _ in range(steps):
+        k = log_k.exp()
+        r = torch.sigmoid(rough).expand(1, hh, ww)
+        spec = render(torch.zeros(3, hh, ww), f0, r, normal, lights, points)
+        rho = ((photos / k - spec) / irr.clamp_min(1e-3)).median(dim=0).values.clamp(0, 1).detach()
+        img = k * render(rho, f0, r, normal, lights, points)
+        loss = ((torch.log(LOG_EPS + img) - target).abs() * valid).sum() / valid.sum().clamp_min(1)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return log_k.detach()
+
+
+def rerender_error(maps: MapSet, capture: Capture, positions: list[int], scale: float = 1.0) -> float:
+    """RMSE between photos (at these capture positions) and renderings of ``maps``,
+    over unsaturated pixels."""
+    lights = capture.lights.select(positions)
+    pts = surface_points(capture.field_mm, capture.size)
+    with torch.no_grad():
+        img = render(maps.diffuse, maps.specular, maps.roughness, maps.normal, lights, pts) * scale
+    valid = ~capture.saturated[positions].expand_as(img)
+    diff = (img.clamp(0, 1) - capture.images[positions])[valid]
+    return float(diff.square().mean().sqrt())

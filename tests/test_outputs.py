@@ -1,0 +1,385 @@
+"""A capture is never lost: outputs checked before the work, never over an input,
+written atomically by one writer at a time (issue: safe outputs).
+
+Every refusal is checked end to end through the command: exit status 2, one line
+on stderr naming the path and the problem, every input byte-identical (sha256),
+and nothing left behind (no temporaries, no lock files).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from matscan.atomic import atomic_folder, clean_stale, exchange, output_lock, replace_folder
+from matscan.capture.folder import write_capture
+from matscan.cli import main
+from matscan.errors import MatscanError
+from matscan.outputs import check_destination, claim_output, foreign_entries
+from matscan.rig import builtin_rig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def tree_digest(folder: Path) -> dict[str, str]:
+    """sha256 of every file under ``folder`` (relative path → digest)."""
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def litter(folder: Path) -> list[str]:
+    """matscan temporaries and lock files anywhere under ``folder``."""
+    return [p.name for p in folder.rglob("*") if ".matscan-" in p.name]
+
+
+@pytest.fixture
+def capture(tmp_path) -> Path:
+    """A tiny 6-light dome24 capture in ``lab/cap`` beside a user's notes."""
+    g = torch.Generator().manual_seed(1)
+    images = torch.rand(6, 3, 16, 16, generator=g) * 0.5 + 0.1
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    (lab / "notes.txt").write_text("swatch 17, autumn collection\n")
+    write_capture(lab / "cap", images, builtin_rig("dome24"), light_indices=[0, 4, 8, 12, 16, 20])
+    return lab / "cap"
+
+
+def run_cli(argv: list[str], capsys) -> tuple[int, str]:
+    capsys.readouterr()  # what earlier commands printed
+    code = main(argv)
+    err = capsys.readouterr().err
+    return code, err
+
+
+def assert_refused(argv, capsys, lab: Path, words: str) -> None:
+    before = tree_digest(lab)
+    code, err = run_cli(argv, capsys)
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("matscan: error: "), err
+    assert words in lines[0], lines[0]
+    assert tree_digest(lab) == before
+    assert litter(lab) == []
+
+
+# --- outputs never touch inputs -------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "out, extra, words",
+    [
+        ("cap", ["--overwrite"], "is the input"),
+        ("cap", ["--overwrite", "--overwrite-any"], "is the input"),
+        (".", ["--overwrite"], "contains the input"),  # lab holds the capture and the notes
+        ("cap/maps", [], "lies inside the input"),
+    ],
+)
+def test_reconstruct_never_writes_over_its_capture(capture, capsys, out, extra, words):
+    lab = capture.parent
+    out_path = lab if out == "." else lab / out
+    argv = ["reconstruct", str(capture), "--out", str(out_path), "--model", "none", "--steps", "1", *extra]
+    assert_refused(argv, capsys, lab, words)
+
+
+def test_single_file_outputs_never_replace_capture_files(capture, capsys):
+    lab = capture.parent
+    for argv in (
+        ["calibrate", "--grey", str(capture), "--out", str(capture / "capture.json")],
+        ["calibrate", "--grey", str(capture), "--out", str(capture / "capture.json"), "--overwrite"],
+        ["render", "@sample", "--out", str(capture / "led_00.png"), "--light", "0,0,225", "--overwrite"],
+        ["sheet", str(capture), "--out", str(capture / "led_04.png"), "--overwrite"],
+    ):
+        assert_refused(argv, capsys, lab, str(capture))
+
+
+def test_a_file_of_another_capture_is_never_replaced(capture, capsys, tmp_path):
+    # not an input of this command, but listed by the capture.json beside it
+    argv = ["render", "@sample", "--out", str(capture / "led_08.png"), "--light", "0,0,225", "--overwrite"]
+    assert_refused(argv, capsys, capture.parent, "belongs to the capture")
+
+
+def test_single_file_outputs_need_overwrite(tmp_path, capsys):
+    out = tmp_path / "r.png"
+    out.write_bytes(b"mine")
+    argv = ["render", "@sample", "--out", str(out), "--light", "0,0,225"]
+    assert_refused(argv, capsys, tmp_path, "exists (pass --overwrite")
+    assert main([*argv, "--overwrite"]) == 0
+    assert out.read_bytes()[:4] == b"\x89PNG" and litter(tmp_path) == []
+
+
+def test_overwrite_replaces_only_previous_outputs(capture, capsys, tmp_path):
+    out = tmp_path / "out"
+    argv = ["reconstruct", str(capture), "--out", str(out), "--model", "none", "--steps", "2"]
+    assert main(argv) == 0
+    assert foreign_entries(out) == []  # matscan.json lists every file it wrote
+    assert main([*argv, "--overwrite"]) == 0  # a previous output is replaced
+    (out / "my-notes.txt").write_text("do not lose me")
+    assert_refused([*argv, "--overwrite"], capsys, tmp_path, "my-notes.txt")
+    assert main([*argv, "--overwrite", "--overwrite-any"]) == 0  # the explicit second flag
+    assert not (out / "my-notes.txt").exists() and litter(tmp_path) == []
+
+
+def test_folder_without_record_is_foreign(tmp_path, capsys, capture):
+    out = tmp_path / "photos"
+    out.mkdir()
+    (out / "IMG_0001.JPG").write_bytes(b"\xff\xd8")
+    argv = ["reconstruct", str(capture), "--out", str(out), "--model", "none", "--overwrite"]
+    assert_refused(argv, capsys, tmp_path, "IMG_0001.JPG")
+
+
+# --- checks before the work ----------------------------------------------------------------
+
+
+def test_existing_output_is_refused_before_reading_the_capture(capture, tmp_path, monkeypatch):
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("x")
+    import matscan.reconstruct.job as rec
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the capture was read before the output was checked")
+
+    monkeypatch.setattr(rec, "load_capture", no_work)
+    with pytest.raises(MatscanError, match="folder exists and is not empty"):
+        rec.reconstruct(capture, tmp_path / "full", rec.ReconstructConfig(model="none"))
+
+
+@pytest.mark.parametrize(
+    "make_out, words",
+    [
+        (lambda t: t / "afile" / "out", "is not a folder"),
+        (lambda t: t / ("n" * 240), "the name is 240 characters"),
+        (lambda t: t / "dangling", "dangling symbolic link"),
+    ],
+)
+def test_unusable_outputs(capture, capsys, tmp_path, make_out, words):
+    (tmp_path / "afile").write_text("a file, not a folder")
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    out = make_out(tmp_path)
+    argv = ["reconstruct", str(capture), "--out", str(out), "--model", "none"]
+    assert_refused(argv, capsys, tmp_path, words)
+
+
+def test_current_folder_is_refused(capture, capsys, tmp_path, monkeypatch):
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    assert_refused(["reconstruct", str(capture), "--out", ".", "--model", "none"], capsys, tmp_path, "current folder")
+
+
+def test_unwritable_and_full_file_systems_are_refused_before_the_work(capture, tmp_path, monkeypatch):
+    import shutil
+    from collections import namedtuple
+
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+    with pytest.raises(MatscanError, match="is not writable"):
+        check_destination(tmp_path / "out", [capture])
+    monkeypatch.undo()
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 1000, 1000))
+    import matscan.reconstruct.job as rec
+
+    with pytest.raises(MatscanError, match="MiB are free"):
+        rec.reconstruct(capture, tmp_path / "out", rec.ReconstructConfig(model="none"))
+    assert not (tmp_path / "out").exists() and litter(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["render", "@sample", "--out", "r.png", "--light", "0,0,200", "--intensity", "nan"], "not a finite number"),
+        (["render", "@sample", "--out", "r.png", "--light", "nan,0,200"], "not finite"),
+        (["simulate", "@sample", "--out", "c", "--noise", "nan"], "not a finite number"),
+        (["reconstruct", "@sample", "--out", "o", "--steps", "-1"], "must be at least 1"),
+        (["evaluate", "photos", "--out", "e", "--size", "0"], "must be at least 8"),
+        (["calibrate", "--chart", "c.png", "--out", "c.json", "--corners", "nan,0,1,0,1,1,0,1"], "not finite"),
+    ],
+)
+def test_argument_ranges(tmp_path, capsys, monkeypatch, argv, words):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        code = main(argv)
+        raise SystemExit(code)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_negative_vector_values_parse(tmp_path, capsys):
+    out = tmp_path / "r.png"
+    assert main(["render", "@sample", "--out", str(out), "--light", "-50,0,150"]) == 0
+    assert "(-50.0, 0.0, 150.0)" in capsys.readouterr().out
+
+
+def test_reconstruct_config_checks_itself():
+    from matscan.reconstruct import ReconstructConfig
+
+    for bad in ({"refine_steps": 0}, {"refine_lr": float("nan")}, {"refine": "maybe"}, {"tile": 3}):
+        with pytest.raises(MatscanError):
+            ReconstructConfig(**bad)
+
+
+# --- atomic and exclusive writes -----------------------------------------------------------
+
+
+def _python(code: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], env=env)
+
+
+def _wait_for(predicate, seconds: float = 20.0) -> None:
+    t0 = time.monotonic()
+    while not predicate():
+        if time.monotonic() - t0 > seconds:
+            raise AssertionError("timed out")
+        time.sleep(0.02)
+
+
+def test_second_writer_fails_at_once(capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    holder = _python(
+        f"""
+        import time
+        from matscan.atomic import output_lock
+        with output_lock({str(out)!r}):
+            open({str(tmp_path / "locked")!r}, "w").close()
+            time.sleep(60)
+        """
+    )
+    try:
+        _wait_for((tmp_path / "locked").exists)
+        t0 = time.monotonic()
+        code, err = run_cli(["reconstruct", str(capture), "--out", str(out), "--model", "none"], capsys)
+        assert code == 2 and "another matscan process is writing this output" in err
+        assert time.monotonic() - t0 < 10  # it did not wait for, or do, the work
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not out.exists()
+
+
+def test_lock_is_reentrant_in_one_process_and_removed_after(tmp_path):
+    out = tmp_path / "o"
+    with output_lock(out), output_lock(out):
+        assert (tmp_path / ".o.matscan-lock").exists()
+    assert litter(tmp_path) == []
+
+
+def test_killed_writer_leaves_temporaries_that_the_next_run_removes(tmp_path, capture):
+    out = tmp_path / "out"
+    victim = _python(
+        f"""
+        import os, signal
+        from matscan.atomic import atomic_folder
+        with atomic_folder({str(out)!r}) as tmp:
+            (tmp / "half.png").write_bytes(b"half")
+            os.kill(os.getpid(), signal.SIGKILL)
+        """
+    )
+    victim.wait()
+    assert victim.returncode == -signal.SIGKILL
+    left = litter(tmp_path)
+    assert any(".out.matscan-tmp-" in name for name in left)
+    with claim_output(out, "test", [capture]) as claim, claim.folder() as tmp:
+        (tmp / "whole.png").write_bytes(b"whole")
+    assert sorted(p.name for p in out.iterdir()) == ["matscan.json", "whole.png"]
+    assert litter(tmp_path) == []
+
+
+def test_temporaries_of_a_live_process_are_kept(tmp_path):
+    out = tmp_path / "out"
+    mine = tmp_path / f".out.matscan-tmp-{os.getppid()}-0badcafe"  # our parent process is alive
+    mine.mkdir()
+    assert clean_stale(out) == [] and mine.exists()
+
+
+def test_interrupt_between_two_renames_restores_the_output(tmp_path):
+    out = tmp_path / "out"
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    old = tmp_path / f".out.matscan-old-{dead.pid}-0123abcd"
+    old.mkdir()
+    (old / "matscan.json").write_text('{"files": []}')
+    clean_stale(out)  # the next writer's first step
+    assert (out / "matscan.json").exists() and not old.exists()
+
+
+def test_replacement_never_leaves_the_final_name_empty(tmp_path, monkeypatch):
+    import matscan.atomic as atomic
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "v").write_text("1")
+    new = tmp_path / "new"
+    new.mkdir()
+    (new / "v").write_text("2")
+    if exchange(tmp_path / "new", out):  # the swap itself: both names exist at every moment
+        exchange(tmp_path / "new", out)  # swap back for the fallback test below
+    monkeypatch.setattr(atomic, "exchange", lambda a, b: False)
+    real_rename = Path.rename
+
+    def interrupted(self, target):
+        if self == new:
+            raise KeyboardInterrupt
+        return real_rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        replace_folder(new, out)
+    assert (out / "v").read_text() == "1"  # the old output is back under its name
+    monkeypatch.setattr(Path, "rename", real_rename)
+    replace_folder(new, out)
+    assert (out / "v").read_text() == "2" and litter(tmp_path) == []
+
+
+def test_sigterm_is_handled_like_ctrl_c(tmp_path):
+    out = tmp_path / "out"
+    started = tmp_path / "started"
+    proc = _python(
+        f"""
+        import sys, time
+        import matscan.cli as cli
+
+        def slow(args):
+            from matscan.outputs import claim_output
+            with claim_output(args.out, "test", overwrite=False) as claim, claim.folder() as tmp:
+                (tmp / "x.png").write_bytes(b"partial")
+                open({str(started)!r}, "w").close()
+                time.sleep(60)
+            return "done"
+
+        cli.cmd_synth = slow
+        sys.exit(cli.main(["synth", "--out", {str(out)!r}, "--count", "1"]))
+        """
+    )
+    _wait_for(started.exists)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) == 130
+    assert not out.exists()
+    assert litter(tmp_path) == []
+
+
+def test_atomic_folder_turns_os_errors_into_one_line(tmp_path, monkeypatch):
+    import errno
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(MatscanError, match="no space left") as exc:
+        with atomic_folder(tmp_path / "o") as tmp:
+            monkeypatch.setattr(Path, "write_bytes", full)
+            (tmp / "a").write_bytes(b"x")
+    assert "\n" not in str(exc.value)
+    assert litter(tmp_path) == [] and not (tmp_path / "o").exists()
