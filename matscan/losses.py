@@ -45,7 +45,7 @@ def _gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = to
 def ssim(x: Tensor, y: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
     """Mean structural similarity of (B, C, H, W) images in [0, 1] (Wang et al. 2004)."""
     c = x.shape[1]
-    g = _gaussian_window(window, sigma, x.dtype)
+    g = _gaussian_window(window, sigma, x.dtype).to(x.device)
     kernel = (g[:, None] * g[None, :]).expand(c, 1, window, window).contiguous()
 
     def blur(t: Tensor) -> Tensor:

@@ -49,7 +49,7 @@ from torch import Tensor, nn
 
 from matscan.errors import MatscanError
 from matscan.render import flat_irradiance, surface_points
-from matscan.rig import Rig
+from matscan.rig import LightSet, Rig
 
 MAPS = ("diffuse", "specular", "roughness", "normal")
 OUT_CHANNELS = {"diffuse": 3, "specular": 3, "roughness": 1, "normal": 3}
@@ -117,17 +117,16 @@ def encode_inputs(
         (B, 4L + 2, H, W): log-encoded photos, presence planes, field x and y in [−1, 1].
     """
     b, n, c, h, w = photos.shape
+    like = {"dtype": photos.dtype, "device": photos.device}  # offset and full_size may be on the CPU
     logs = torch.log1p(photos.clamp_min(0) * LOG_SCALE) / math.log1p(LOG_SCALE)
     logs = logs * present.view(b, n, 1, 1, 1)
     planes = present.view(b, n, 1, 1).expand(b, n, h, w)
-    if offset is None:
-        offset = torch.zeros(b, 2, dtype=torch.long)
-    if full_size is None:
-        full_size = torch.tensor([[h, w]] * b)
-    rows = torch.arange(h, dtype=photos.dtype).view(1, h, 1) + offset[:, 0].view(b, 1, 1).to(photos.dtype) + 0.5
-    cols = torch.arange(w, dtype=photos.dtype).view(1, 1, w) + offset[:, 1].view(b, 1, 1).to(photos.dtype) + 0.5
-    x = (cols / full_size[:, 1].view(b, 1, 1).to(photos.dtype)) * 2 - 1
-    y = 1 - (rows / full_size[:, 0].view(b, 1, 1).to(photos.dtype)) * 2
+    offset = torch.zeros(b, 2, **like) if offset is None else offset.to(**like)
+    full_size = torch.tensor([[h, w]] * b, **like) if full_size is None else full_size.to(**like)
+    rows = torch.arange(h, **like).view(1, h, 1) + offset[:, 0].view(b, 1, 1) + 0.5
+    cols = torch.arange(w, **like).view(1, 1, w) + offset[:, 1].view(b, 1, 1) + 0.5
+    x = (cols / full_size[:, 1].view(b, 1, 1)) * 2 - 1
+    y = 1 - (rows / full_size[:, 0].view(b, 1, 1)) * 2
     coords = torch.stack([x.expand(b, h, w), y.expand(b, h, w)], dim=1)
     return torch.cat([logs.reshape(b, n * c, h, w), planes.to(photos.dtype), coords], dim=1)
 
@@ -145,22 +144,32 @@ def network_input(
 
     A Lambertian pixel of albedo ρ then reads ρ under every light, wherever it lies
     in the dome: the networks need not learn the rig's falloff and cosines, and
-    highlights stand out as departures from that.
+    highlights stand out as departures from that. Computed on ``photos``' device;
+    ``offset`` and ``full_size`` are best left on the CPU (they are read as numbers).
     """
     b, n, _, h, w = photos.shape
     if offset is None:
         offset = torch.zeros(b, 2, dtype=torch.long)
     if full_size is None:
         full_size = torch.tensor([[h, w]] * b)
-    lights = rig.light_set()
+    lights = lights_to(rig.light_set(), photos.device)
     field = field_mm if field_mm is not None else rig.field_mm
+    places = zip(offset.tolist(), full_size.tolist(), strict=True)
     irr = torch.stack(
         [
-            flat_irradiance(lights, surface_points(field, (h, w), (int(o[0]), int(o[1])), (int(f[0]), int(f[1]))))
-            for o, f in zip(offset, full_size, strict=True)
+            flat_irradiance(lights, surface_points(field, (h, w), tuple(o), tuple(f)).to(photos.device))
+            for o, f in places
         ]
     )
     return encode_inputs(photos / irr.clamp_min(IRRADIANCE_FLOOR), present, offset, full_size)
+
+
+def lights_to(lights: LightSet, device: torch.device | str) -> LightSet:
+    """The same lights with their tensors on ``device`` (``LightSet.to`` takes a dtype only)."""
+    return LightSet(
+        *(getattr(lights, f).to(device) for f in ("position", "intensity", "axis", "exponent", "camera")),
+        lights.reference_distance_mm,
+    )
 
 
 def photo_albedo(x: Tensor, n_lights: int, statistic: str = "median") -> Tensor:

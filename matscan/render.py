@@ -163,7 +163,7 @@ def render(
     else:
         use_compiled = compile if compile is not None else batch * n_lights * npix >= COMPILE_MIN
         shade = _compiled_shade() if use_compiled else None
-        out = torch.empty(batch, n_lights, 3, npix, dtype=dtype)
+        out = torch.empty(batch, n_lights, 3, npix, dtype=dtype, device=rho.device)
         for s in starts:
             e = min(s + step, npix)
             pix = [t[..., s:e] for t in (rho_f, f0_f, r_f, n_f, pts_f)]
@@ -249,7 +249,7 @@ def _compiled_shade():
 def _standard(t: Tensor) -> Tensor:
     """A copy with standard contiguous strides (also on size-1 dimensions, which
     torch.compile's guards compare)."""
-    return torch.empty(t.shape, dtype=t.dtype).copy_(t)
+    return torch.empty(t.shape, dtype=t.dtype, device=t.device).copy_(t)
 
 
 def _run(shade, *args):

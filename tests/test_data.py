@@ -8,6 +8,7 @@ from conftest import random_maps
 from torch.utils.data import DataLoader
 
 from matscan.data import DataConfig, SvbrdfDataset, composite_over_stage, mix_materials
+from matscan.errors import MatscanError
 from matscan.mapset import MapSet
 from matscan.render import render, surface_points
 from matscan.rig import DOME24_SUBSETS, LightSet, builtin_rig, transform_points
@@ -111,3 +112,27 @@ def test_mixing_and_stage_composite():
     stage = composite_over_stage(holes)
     assert torch.allclose(stage.diffuse, torch.full_like(stage.diffuse, 0.02))
     assert torch.allclose(stage.normal[2], torch.ones(16, 16))
+
+
+#: Samples 0–2 of DataConfig(crop=32, compile=False), computed before prior v2 existed
+#: (commit a72f59b): sum of the photos, mean |n_x|, |n_y| of the normals, crop offset.
+V1_SAMPLES = [(12576.0754, 0.062223, [845, 98]), (224.3874, 0.044338, [379, 366]), (3656.6691, 0.136833, [490, 321])]
+
+
+def test_the_default_prior_keeps_the_samples_of_earlier_runs():
+    for prior in (None, "v1"):
+        ds = SvbrdfDataset(DataConfig(crop=32, compile=False, **({} if prior is None else {"prior": prior})))
+        for i, (total, tilt, offset) in enumerate(V1_SAMPLES):
+            s = ds[i]
+            assert float(s["inputs"].double().sum()) == pytest.approx(total, rel=1e-5)
+            assert float(s["normal"][:2].double().abs().mean()) == pytest.approx(tilt, abs=2e-6)
+            assert s["offset"].tolist() == offset
+
+
+def test_prior_v2_reaches_the_samples():
+    v1 = SvbrdfDataset(DataConfig(crop=16, compile=False))
+    v2 = SvbrdfDataset(DataConfig(crop=16, compile=False, prior="v2"))
+    assert any(not torch.equal(v1[i]["diffuse"], v2[i]["diffuse"]) for i in range(4))
+    assert v2[0]["inputs"].shape == (24, 3, 16, 16)
+    with pytest.raises(MatscanError, match="prior: 'v3' is not one of v1, v2"):
+        DataConfig(prior="v3")

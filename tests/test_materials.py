@@ -5,9 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
+from matscan.data import DataConfig
 from matscan.errors import MatscanError
 from matscan.materials.noise import cells, normals_from_height, spectral_noise
-from matscan.materials.procedural import FAMILIES, METALS, generate, random_material
+from matscan.materials.procedural import DARK_ALBEDO_MAX, FAMILIES, METALS, PRIORS, generate, random_material
 
 
 @pytest.mark.parametrize("family", FAMILIES)
@@ -97,3 +98,141 @@ def test_noise_primitives():
     ramp = x[None, :].expand(16, 16).clone()
     n = normals_from_height(ramp, 1.0)[:, :, 4:12]
     torch.testing.assert_close(n[:, 5, 3], torch.tensor([-(0.5**0.5), 0.0, 0.5**0.5]), atol=1e-6, rtol=0)
+
+
+# --- material priors -----------------------------------------------------------------
+
+#: Prior v1 draws, computed with matscan/materials/procedural.py as of commit a72f59b (the
+#: last before prior v2 existed, imported on its own from `git show`): seed, mm_per_px,
+#: family, and the means of diffuse, specular, roughness and |n_x|, |n_y| of a 32² draw.
+V1_DRAWS = [
+    (0, None, "metal_brushed", [0.0177564, 0.4275258, 0.392683, 0.0002921]),
+    (1, None, "woven_satin", [0.1982689, 0.0214867, 0.2976527, 0.0012105]),
+    (2, 0.05, "woven_plain", [0.2883927, 0.0387616, 0.6100761, 0.2398197]),
+    (3, None, "foil_print", [0.0698363, 0.4495442, 0.3340852, 0.0033023]),
+    (8, 0.3, "leather", [0.1651542, 0.049184, 0.3238417, 0.1227422]),
+    (13, None, "metal_embossed", [0.0053774, 0.6118709, 0.1484295, 0.0010371]),
+    (2**41 + 7, None, "woven_satin", [0.0791662, 0.0288266, 0.4139165, 0.0046874]),
+]
+V1_FAMILIES = (
+    "metal_brushed woven_satin woven_plain foil_print leather woven_twill leather woven_satin leather foil_print "
+    "foil_print foil_print lace metal_embossed metal_brushed foil_print woven_satin mesh leather painted "
+    "woven_twill paper leather plastic"
+).split()
+V1_COMMIT = "a72f59b"
+
+
+@pytest.mark.parametrize("prior", [None, "v1"])
+def test_prior_v1_draws_what_it_always_drew(prior):
+    # published numbers (procedural:N, the model card's validation set) are reproduced from these seeds
+    kw = {} if prior is None else {"prior": prior}
+    assert [random_material(8, s, **kw)[0] for s in range(len(V1_FAMILIES))] == V1_FAMILIES
+    for seed, mm, family, means in V1_DRAWS:
+        fam, m = random_material(32, seed, mm, **kw)
+        got = [float(t.double().mean()) for t in (m.diffuse, m.specular, m.roughness, m.normal[:2].abs())]
+        assert fam == family
+        assert got == pytest.approx(means, abs=2e-7), (seed, family)
+
+
+def test_prior_v1_is_bit_identical_to_its_release():
+    # the procedural module of the last commit before prior v2, run beside today's
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        src = subprocess.run(
+            ["git", "show", f"{V1_COMMIT}:matscan/materials/procedural.py"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip(f"no git history with commit {V1_COMMIT} here")
+    ns: dict = {"__name__": "procedural_v1_release"}  # a namespace of its own, not in sys.modules
+    exec(compile(src, f"{V1_COMMIT}:matscan/materials/procedural.py", "exec"), ns)
+    for seed in [*range(40), 2**41, 2**41 + 3]:
+        for mm in (None, 0.04, 0.47):
+            fam_a, a = ns["random_material"](24, seed, mm)
+            fam_b, b = random_material(24, seed, mm)
+            assert fam_a == fam_b
+            for name, t in a.present().items():
+                assert torch.equal(getattr(b, name), t), (seed, mm, name)
+
+
+def test_prior_v2_adds_the_new_families_at_their_share():
+    new = [f for f in PRIORS["v2"] if f not in PRIORS["v1"]]
+    assert set(PRIORS["v1"]) < set(PRIORS["v2"]) and set(new) < set(FAMILIES)
+    share = sum(PRIORS["v2"][f] for f in new) / sum(PRIORS["v2"].values())
+    assert 0.35 <= share <= 0.45
+    drawn = [random_material(8, s, prior="v2")[0] for s in range(400)]
+    assert abs(sum(f in new for f in drawn) / 400 - share) < 0.08
+    assert set(drawn) >= set(new)
+    with pytest.raises(MatscanError, match="prior: 'v9' is not one of v1, v2"):
+        random_material(8, 0, prior="v9")
+
+
+def _training_scale(i: int) -> float:
+    """mm per pixel log-uniform over the training range (DataConfig.mm_per_px), fixed per i."""
+    lo, hi = DataConfig().mm_per_px
+    return lo * (hi / lo) ** ((i * 0.618034) % 1.0)
+
+
+def _tilt_degrees(maps) -> torch.Tensor:
+    return torch.rad2deg(torch.acos(maps.normal[2].clamp(-1, 1))).flatten()
+
+
+@pytest.mark.parametrize("family", ["leather_embossed", "weave_heavy", "corrugated"])
+def test_relief_families_tilt_20_to_40_degrees_at_every_training_scale(family):
+    medians, steep = [], []
+    for i in range(12):
+        tilt = _tilt_degrees(generate(family, 128, i, _training_scale(i)))
+        medians.append(float(tilt.median()))
+        steep.append(float((tilt > 15).float().mean()))
+    assert min(medians) >= 12, medians  # no draw comes out flat, whatever its scale
+    assert 20 <= float(torch.tensor(medians).median()) <= 40, medians
+    assert sum(steep) / len(steep) >= 0.6  # most of the surface tilts more than 15°
+
+
+def test_v1_leather_is_flatter_than_embossed_leather():
+    # the gap prior v2 fills: same scales, v1's leather lies much flatter
+    old = [float(_tilt_degrees(generate("leather", 128, i, _training_scale(i))).median()) for i in range(12)]
+    assert float(torch.tensor(old).median()) < 15
+
+
+def _spread(t: torch.Tensor) -> float:
+    q = t.flatten().quantile(torch.tensor([0.05, 0.95]))
+    return float(q[1] - q[0])
+
+
+def test_metallic_print_holds_metal_and_dielectric():
+    for s in range(16):
+        m = generate("metallic_print", 128, s)
+        f0 = m.specular.amax(0)  # brightest channel: a coloured foil is dark in some
+        assert _spread(f0) >= 0.3, s
+        assert float(f0.min()) <= 0.05 and float(f0.max()) >= 0.35, s
+
+
+def test_worn_roughness_and_specular_vary_over_the_surface():
+    spreads = [_spread(generate("worn", 128, s).roughness) for s in range(16)]
+    assert min(spreads) >= 0.12, spreads
+    f0_spreads = [_spread(generate("worn", 128, s).specular.amax(0)) for s in range(16)]
+    assert sum(x >= 0.1 for x in f0_spreads) >= 6  # paint over metal and tarnished metal: two kinds in three
+
+
+def test_varnished_wood_is_a_dielectric_under_a_clear_coat():
+    for s in range(8):
+        m = generate("varnished_wood", 96, s)
+        assert 0.04 <= float(m.specular.min()) and float(m.specular.max()) <= 0.05
+        assert float(m.roughness.flatten().quantile(0.25)) <= 0.42  # the varnish is glossy away from pores
+        assert _spread(m.roughness) > 0.02  # pores and brush marks vary it
+        assert float(m.diffuse[0].mean()) > float(m.diffuse[2].mean())  # wood is warm
+
+
+def test_dark_glossy_is_dark_and_glossy():
+    for s in range(24):
+        m = generate("dark_glossy", 64, s)
+        assert float(m.diffuse.max()) <= DARK_ALBEDO_MAX <= 0.05
+        assert float(m.roughness.max()) <= 0.45 and float(m.roughness.min()) >= 0.03
+        assert 0.04 <= float(m.specular.min()) and float(m.specular.max()) <= 0.05

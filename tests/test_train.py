@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import subprocess
 import sys
@@ -23,6 +24,7 @@ from matscan.train import (
     build_nets,
     export_weights,
     load_weights,
+    resolve_device,
     save_checkpoint,
     train,
     training_record,
@@ -207,3 +209,60 @@ def test_a_resumed_run_keeps_the_net_config_it_started_with(tmp_path, monkeypatc
     train(CFG, tmp_path / "a", max_steps=1, progress=False)
     meta = _metadata(tmp_path / "a" / CHECKPOINT)
     assert meta["step"] == "2" and json.loads(meta["net_config"])["photo_statistic"] == "median"
+
+
+# --- material prior, device, run folders of earlier versions ---------------------------------
+
+
+def test_a_run_folder_from_before_prior_and_device_resumes(tmp_path):
+    train(CFG, tmp_path / "a", max_steps=1, progress=False)
+    config = tmp_path / "a" / "config.json"
+    old = {k: v for k, v in json.loads(config.read_text()).items() if k not in ("prior", "device", "prefetch")}
+    config.write_text(json.dumps(old, indent=2) + "\n")  # as written before those fields existed
+    res = train(CFG, tmp_path / "a", max_steps=1, progress=False)
+    assert res["step"] == 2 and json.loads(config.read_text()) == old  # the run's record stays as it was
+
+
+def test_where_a_run_executes_may_change_on_resume_but_not_its_prior(tmp_path):
+    train(CFG, tmp_path / "a", max_steps=1, progress=False)
+    moved = TrainConfig(**{**CFG.__dict__, "device": "cpu", "prefetch": 2, "workers": 0})
+    assert train(moved, tmp_path / "a", max_steps=1, progress=False)["step"] == 2
+    with pytest.raises(MatscanError, match="differs in prior"):
+        train(TrainConfig(**{**CFG.__dict__, "prior": "v2"}), tmp_path / "a", progress=False)
+
+
+def test_prior_v2_trains_and_is_recorded(tmp_path):
+    cfg = TrainConfig(**{**CFG.__dict__, "prior": "v2", "val_every": 0})
+    res = train(cfg, tmp_path / "a", max_steps=2, progress=False)
+    assert res["step"] == 2 and all(math.isfinite(v) for v in res["losses"].values())
+    assert json.loads((tmp_path / "a" / "config.json").read_text())["prior"] == "v2"
+    assert json.loads(_metadata(tmp_path / "a" / CHECKPOINT)["config"])["prior"] == "v2"
+    with pytest.raises(MatscanError, match="prior: 'v7' is not one of"):
+        train(TrainConfig(**{**CFG.__dict__, "prior": "v7"}), tmp_path / "b", progress=False)
+    assert not (tmp_path / "b").exists()  # refused before the run folder was made
+
+
+def test_resolve_device():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto") == torch.device("cuda:0" if torch.cuda.is_available() else "cpu")
+    for bad in ("gpu", "cuda:x", ""):
+        with pytest.raises(MatscanError, match="is not one of auto, cpu, cuda, cuda:N"):
+            resolve_device(bad)
+    if not torch.cuda.is_available():
+        with pytest.raises(MatscanError, match="sees no CUDA device"):
+            resolve_device("cuda")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_run_on_cuda_matches_the_cpu_and_resumes_there(tmp_path):
+    cfg = TrainConfig(**{**CFG.__dict__, "val_every": 2})
+    train(TrainConfig(**{**cfg.__dict__, "device": "cpu"}), tmp_path / "cpu", max_steps=2, progress=False)
+    train(TrainConfig(**{**cfg.__dict__, "device": "cuda"}), tmp_path / "gpu", max_steps=2, progress=False)
+    tensors = load_file(str(tmp_path / "gpu" / CHECKPOINT))
+    assert all(t.device.type == "cpu" for t in tensors.values())
+    for a, b in zip(_log(tmp_path / "cpu"), _log(tmp_path / "gpu"), strict=True):
+        for k in a:
+            assert float(b[k]) == pytest.approx(float(a[k]), rel=2e-3, abs=1e-4), k
+    # the GPU run goes on on the CPU
+    res = train(TrainConfig(**{**cfg.__dict__, "device": "cpu"}), tmp_path / "gpu", max_steps=1, progress=False)
+    assert res["step"] == 3

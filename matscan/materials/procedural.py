@@ -11,7 +11,17 @@ Reflectance ranges used throughout: dielectric F0 0.02–0.06 (refractive index
 
 Families (``FAMILIES``): woven_plain, woven_twill, woven_satin, knit, leather,
 paper, painted, plastic, metal_brushed, metal_embossed, foil_print, mesh, lace,
-fluorescent_print.
+fluorescent_print; and, since prior v2, leather_embossed, weave_heavy, corrugated
+(strong relief), metallic_print, worn, varnished_wood (specular and roughness that
+vary over the surface) and dark_glossy.
+
+Priors (``PRIORS``): :func:`random_material` draws a family by the weights of a
+prior version. "v1" (the default) holds the first fourteen families and draws, for
+every seed, the material it always drew: published numbers (``procedural:N`` in
+evaluate, the model card's validation set) are reproduced from those seeds. "v2"
+adds the seven later families at 41% of the draws: v1's materials are mostly flat
+(a median tilt under 10° in 55% of its draws at training scales, under 15° in 69%)
+and most hold one specular value.
 """
 
 from __future__ import annotations
@@ -436,6 +446,319 @@ def fluorescent_print(size: int, g: torch.Generator, mm_per_px: float) -> MapSet
     )
 
 
+# --- prior v2: strong relief ------------------------------------------------------
+#
+# These set relief by slope, not depth: a height of tan(θ) × the feature's width in mm
+# tilts the normals alike at every scale training draws (0.04–0.47 mm per pixel), where a
+# depth fixed in mm gives walls at the fine end and a nearly flat surface at the coarse end.
+# Measured tilt (the angle between the normal and +z) in the docstrings: the median over a
+# material's pixels, for 64 materials (seeds 0–63, 128² at scales log-uniform in 0.04–0.47
+# mm/px, the training draw), given as the 10th / 50th / 90th percentiles over materials.
+
+
+def leather_embossed(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
+    """Embossed and pebbled leather: domed cells (pebble grain, croc and ostrich scales)
+    between grooves, a fine grain on top, the domes' finish glossier than the grooves.
+
+    Ranges: 16–400 cells per tile; each dome rises over 60–100% of the half-pitch from
+    its groove, with a wall slope of 40°–65° (a 3 mm cell: 0.8–1.6 mm deep); F0
+    0.03–0.05; roughness 0.25–0.6 on the domes, 0.05–0.2 rougher in the grooves;
+    browns, black or dyed, grooves darker. Measured median tilt 21° / 27° / 41°
+    (lowest 18°); 79% of the surface (mean over materials) tilts more than 15°.
+    """
+    count = _i(g, 16, 400)
+    f1, f2, value = cells(size, g, count)
+    pitch = size / math.sqrt(count)  # pixels
+    reach = _u(g, 0.6, 1.0) * pitch / 2  # pixels from the groove to the dome's flat top
+    dome = torch.sin(math.pi / 2 * ((f2 - f1) / 2 / reach).clamp(max=1))
+    slope = math.tan(math.radians(_u(g, 40, 65)))
+    depth = slope * reach * mm_per_px * 2 / math.pi  # the sine profile's steepest slope is `slope`
+    grain = spectral_noise(size, g, _u(g, 0.004, 0.012))
+    height = depth * (dome + 0.03 * grain)
+    colour = random_colour(g, (0.2, 0.9), (0.05, 0.6))
+    if _u(g, 0, 1) < 0.5:  # classic browns
+        colour = srgb_to_linear(torch.tensor([_u(g, 0.3, 0.7), _u(g, 0.15, 0.4), _u(g, 0.05, 0.2)])).view(3, 1, 1)
+    diffuse = colour * (0.55 + 0.45 * dome) * (1 + 0.15 * (value - 0.5)) * (1 + 0.05 * grain)
+    rough = _u(g, 0.25, 0.6) + _u(g, 0.05, 0.2) * (1 - dome) + 0.02 * grain
+    return _finish(size, diffuse, _dielectric_f0(g, 0.03, 0.05), rough, height, mm_per_px)
+
+
+#: Heavy weave repeats (1 where the warp is on top): basket pairs the yarns.
+HEAVY_WEAVES: dict[str, list[list[int]]] = {
+    "basket": [[1, 1, 0, 0], [1, 1, 0, 0], [0, 0, 1, 1], [0, 0, 1, 1]],
+    "plain": WEAVES["plain"],
+    "twill": WEAVES["twill"],
+}
+
+
+def weave_heavy(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
+    """Heavy weaves: canvas, basket weave, jute and sisal, with yarns about as thick as
+    they are wide.
+
+    Ranges: 4–16 yarns per tile; yarns 75–95% of the pitch wide, elliptical in section
+    with height 0.6–1.1 × the half width (1: round), crimp 10–30%; natural fibre
+    (jute, sisal, linen) or dyed; F0 0.02–0.05; roughness 0.6–0.95. Measured median
+    tilt 20° / 26° / 32° (lowest 18°); 76% of the surface tilts more than 15°.
+    """
+    kind = _choice(g, list(HEAVY_WEAVES))
+    pattern = torch.tensor(HEAVY_WEAVES[kind], dtype=torch.float32)
+    rep = pattern.shape[0]
+    n = rep * max(1, _i(g, 4, 16) // rep)
+    col, row, fx, fy = grid_coords(size, n, n)
+    warp_up = pattern[row % rep, col % rep] > 0
+    width = _u(g, 0.75, 0.95)
+    crimp = _u(g, 0.1, 0.3)
+    h_warp = (1 - ((fx - 0.5) / (width / 2)) ** 2).clamp_min(0).sqrt() * (1 - crimp + crimp * torch.sin(math.pi * fy))
+    h_weft = (1 - ((fy - 0.5) / (width / 2)) ** 2).clamp_min(0).sqrt() * (1 - crimp + crimp * torch.sin(math.pi * fx))
+    yarn = torch.maximum(torch.where(warp_up, h_warp, h_weft), 0.5 * torch.where(warp_up, h_weft, h_warp))
+    # where the warp shows, antialiased; blurring also lets a yarn dive under its neighbour, not step down
+    sigma = max(0.7, 0.03 * size / n)
+    warp_shows = blur(torch.where(warp_up, h_warp >= 0.5 * h_weft, 0.5 * h_warp > h_weft).float(), sigma)
+    yarn = blur(yarn, sigma)
+    fibre = torch.lerp(
+        spectral_noise(size, g, 0.15 / n, stretch=5, angle=0.0),
+        spectral_noise(size, g, 0.15 / n, stretch=5, angle=math.pi / 2),
+        warp_shows,
+    )
+    half_width_mm = width / 2 * size / n * mm_per_px
+    height = _u(g, 0.6, 1.1) * half_width_mm * (yarn + 0.05 * fibre)
+    if _u(g, 0, 1) < 0.4:  # undyed natural fibre
+        warp_colour = srgb_to_linear(torch.tensor([_u(g, 0.55, 0.8), _u(g, 0.45, 0.65), _u(g, 0.25, 0.45)]))
+        warp_colour = warp_colour.view(3, 1, 1)
+    else:
+        warp_colour = random_colour(g, (0.1, 0.9), (0.15, 0.9))
+    weft_colour = warp_colour if _u(g, 0, 1) < 0.5 else random_colour(g, (0.1, 0.9), (0.15, 0.9))
+    colour = torch.lerp(weft_colour, warp_colour, warp_shows)
+    diffuse = colour * (0.45 + 0.55 * yarn) * (1 + 0.1 * fibre)
+    rough = _u(g, 0.6, 0.95) + 0.05 * fibre - 0.05 * yarn
+    return _finish(size, diffuse, _dielectric_f0(g, 0.02, 0.05), rough, height, mm_per_px)
+
+
+def corrugated(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
+    """Ribbed and corrugated surfaces: corrugated card, ribbed rubber matting, corduroy,
+    corrugated plastic sheet.
+
+    Ranges: 3–16 ribs per tile, along an axis or a diagonal; profile by material: sine
+    (card, sheet; steepest slope 30°–50°), trapezoid (rubber; flanks of 30°–50° over
+    50–90% of the surface) or round wales (corduroy; height 0.6–1.0 × the half width);
+    card: browns, roughness 0.7–0.9, F0 0.03–0.04; rubber: albedo 0.02–0.08, roughness
+    0.4–0.7, F0 0.04–0.05; corduroy: dyed, roughness 0.75–0.95, F0 0.02–0.04; sheet:
+    any colour, roughness 0.15–0.5, F0 0.04–0.05. Measured median tilt 20° / 29° / 36°
+    (lowest 15°); 79% of the surface tilts more than 15°.
+    """
+    kind = _choice(g, ["card", "rubber", "corduroy", "sheet"])
+    ribs = _i(g, 3, 16)
+    across = _choice(g, [0, 0, _i(g, 1, ribs), -_i(g, 1, ribs)])  # diagonal ribs: another integer wave number
+    kx, ky = (ribs, across) if _u(g, 0, 1) < 0.5 else (across, ribs)
+    u = (torch.arange(size, dtype=torch.float32) + 0.5) / size
+    t = (kx * u[None, :] + ky * u[:, None]) % 1.0  # phase across the ribs, periodic over the tile
+    pitch_mm = size * mm_per_px / math.hypot(kx, ky)
+    steepest = math.tan(math.radians(_u(g, 30, 50)))
+    if kind == "corduroy":  # round wales with a narrow groove between
+        half = _u(g, 0.4, 0.48)
+        profile = (1 - ((t - 0.5) / half) ** 2).clamp_min(0).sqrt()
+        height = _u(g, 0.6, 1.0) * half * pitch_mm * profile
+    elif kind == "rubber":  # flat tops and valleys joined by straight flanks
+        ramp = _u(g, 0.25, 0.45)  # each flank's share of the period
+        profile = smoothstep(0.5 - ramp, 0.5 + ramp, 1 - 2 * (t - 0.5).abs())
+        height = steepest * ramp * pitch_mm / 1.5 * profile  # smoothstep's steepest slope is 1.5 / width
+    else:
+        profile = 0.5 - 0.5 * torch.cos(2 * math.pi * t)
+        height = steepest * pitch_mm / math.pi * profile
+    detail = spectral_noise(size, g, _u(g, 0.003, 0.01))
+    height = height + 0.02 * pitch_mm * detail * (0.3 if kind == "sheet" else 1.0)
+    if kind == "card":
+        colour = srgb_to_linear(torch.tensor([_u(g, 0.55, 0.8), _u(g, 0.4, 0.6), _u(g, 0.25, 0.4)])).view(3, 1, 1)
+        rough, f0 = _u(g, 0.7, 0.9), _dielectric_f0(g, 0.03, 0.04)
+    elif kind == "rubber":
+        colour = torch.full((3, 1, 1), _u(g, 0.02, 0.08))
+        rough, f0 = _u(g, 0.4, 0.7), _dielectric_f0(g, 0.04, 0.05)
+    elif kind == "corduroy":
+        colour = random_colour(g, (0.2, 0.9), (0.1, 0.8))
+        rough, f0 = _u(g, 0.75, 0.95), _dielectric_f0(g, 0.02, 0.04)
+    else:
+        colour = random_colour(g, (0.0, 1.0), (0.1, 0.95))
+        rough, f0 = _u(g, 0.15, 0.5), _dielectric_f0(g, 0.04, 0.05)
+    shade = 0.6 + 0.4 * profile if kind in ("corduroy", "card") else torch.ones(1, 1)
+    diffuse = colour * shade * (1 + 0.05 * detail)
+    return _finish(size, diffuse, f0, rough + 0.03 * detail, height, mm_per_px)
+
+
+# --- prior v2: specular and roughness that vary over the surface ----------------------
+
+
+def metallic_print(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
+    """Metallic ink and foil printed on coated paper, card or plastic film: halftone
+    dots, guilloche lines, solid shapes, or metal flakes in a clear coat.
+
+    In the print: F0 from ``METALS`` (or aluminium tinted, as coloured foils are) times
+    a density 0.7–1.0, diffuse 0.01–0.03, roughness 0.1–0.45. Between: F0 0.04–0.05,
+    any colour, roughness 0.15–0.8. The print covers 5–95% of the tile, so the F0 map
+    always holds both: measured on 64 materials (seeds 0–63, 128²), the 95th − 5th
+    percentile of F0 (brightest channel) is at least 0.33 in every one (median 0.66).
+    """
+    base = random_colour(g, (0.0, 0.9), (0.1, 0.95))
+    base_rough = _u(g, 0.15, 0.8)
+    kind = _choice(g, ["halftone", "lines", "shapes", "flakes"])
+    if kind == "halftone":  # dot size follows a smooth tone
+        n = _i(g, 8, 40)
+        _, _, fx, fy = grid_coords(size, n, n)
+        tone = 0.2 + 0.6 * smoothstep(-1.5, 1.5, spectral_noise(size, g, _u(g, 0.1, 0.3)))
+        r = torch.sqrt((fx - 0.5) ** 2 + (fy - 0.5) ** 2)
+        edge = n / size  # one pixel in cell units
+        mask = 1 - smoothstep(-edge, edge, r - 0.7 * tone.sqrt())
+    elif kind == "lines":  # guilloche: wavy bands, periodic over the tile
+        u = (torch.arange(size, dtype=torch.float32) + 0.5) / size
+        k, m = _i(g, 4, 24), _i(g, 1, 4)
+        wave = _u(g, 0.3, 1.5) * torch.sin(2 * math.pi * m * u)[None, :]
+        t = (k * u[:, None] + wave) % 1.0
+        half = _u(g, 0.2, 0.35)
+        mask = 1 - smoothstep(half - 0.05, half + 0.05, (t - 0.5).abs())
+    elif kind == "shapes":
+        mask = _print_pattern(size, g)
+    else:  # flakes: each cell a flake, metallic or not
+        _, _, value = cells(size, g, _i(g, 300, 3000))
+        mask = (value < _u(g, 0.3, 0.7)).float()
+    mask = mask[None]
+    f0 = _metal_f0(g)
+    if _u(g, 0, 1) < 0.3:  # coloured foil: aluminium under a dyed lacquer
+        f0 = torch.tensor(METALS["aluminium"]).view(3, 1, 1) * random_colour(g, (0.3, 0.8), (0.9, 1.0))
+    f0 = f0 * _u(g, 0.8, 1.0)
+    fibres = spectral_noise(size, g, 0.005)
+    height = 0.005 * fibres - _u(g, 0.0, 0.02) * mask  # stamped foil sits a little lower
+    return _finish(
+        size,
+        torch.lerp(base * (1 + 0.03 * fibres), torch.full((3, 1, 1), _u(g, 0.01, 0.03)), mask),
+        torch.lerp(_dielectric_f0(g, 0.04, 0.05).expand(3, size, size), f0.expand(3, size, size), mask),
+        torch.lerp(torch.full((1, 1, 1), base_rough), torch.full((1, 1, 1), _u(g, 0.1, 0.45)), mask),
+        height[0],
+        mm_per_px,
+    )
+
+
+def worn(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
+    """Worn and polished finishes: paint worn through to the metal beneath, tarnished
+    metal rubbed bright, and matte dielectrics (leather, wood, stone) polished glossy
+    where hands touch them. Wear follows the high points of a dented relief.
+
+    Ranges: relief 0.005–0.05 mm; worn share 20–70% of the tile. Paint over metal:
+    paint F0 0.04–0.05, roughness 0.35–0.75; bare metal F0 from ``METALS``, roughness
+    0.12–0.3. Tarnished metal: F0 × 0.2–0.5 and roughness 0.5–0.8 in the tarnish,
+    F0 × 0.9–1 and roughness 0.1–0.3 where polished. Polished dielectric: roughness
+    0.55–0.9 matte, 0.1–0.3 polished, F0 0.04–0.05. Measured on 64 materials (seeds
+    0–63, 128²), roughness's 95th − 5th percentile is at least 0.15 in every one
+    (median 0.46); two in three also vary in F0 (metal against paint or tarnish).
+    """
+    kind = _choice(g, ["paint_on_metal", "tarnished_metal", "polished"])
+    relief = fractal_noise(size, g, _u(g, 0.05, 0.2))
+    height = _u(g, 0.005, 0.05) * relief
+    wear = fractal_noise(size, g, _u(g, 0.03, 0.15)) + _u(g, 0.5, 1.5) * relief
+    level = float(torch.quantile(wear.flatten(), 1 - _u(g, 0.2, 0.7)))
+    soft = _u(g, 0.05, 0.3)
+    mask = smoothstep(level - soft, level + soft, wear)[None]  # 1 where worn or polished
+    metal = _metal_f0(g)
+    if kind == "paint_on_metal":
+        diffuse = torch.lerp(random_colour(g, (0.2, 1.0), (0.1, 0.9)), torch.full((3, 1, 1), 0.01), mask)
+        f0 = torch.lerp(_dielectric_f0(g, 0.04, 0.05), metal, mask)
+        rough = torch.lerp(torch.full((1, 1, 1), _u(g, 0.35, 0.75)), torch.full((1, 1, 1), _u(g, 0.12, 0.3)), mask)
+        height = height - 0.01 * mask[0]  # the paint layer's thickness is gone there
+    elif kind == "tarnished_metal":
+        oxide = srgb_to_linear(torch.tensor([_u(g, 0.15, 0.4), _u(g, 0.1, 0.3), _u(g, 0.05, 0.2)])).view(3, 1, 1)
+        diffuse = torch.lerp(oxide, torch.full((3, 1, 1), 0.01), mask)
+        f0 = torch.lerp(metal * _u(g, 0.2, 0.5), metal * _u(g, 0.9, 1.0), mask)
+        rough = torch.lerp(torch.full((1, 1, 1), _u(g, 0.5, 0.8)), torch.full((1, 1, 1), _u(g, 0.1, 0.3)), mask)
+    else:
+        colour = random_colour(g, (0.1, 0.9), (0.1, 0.8))
+        diffuse = colour * (1 - _u(g, 0.0, 0.15) * mask)  # rubbed areas darken a little
+        f0 = _dielectric_f0(g, 0.04, 0.05)
+        rough = torch.lerp(torch.full((1, 1, 1), _u(g, 0.55, 0.9)), torch.full((1, 1, 1), _u(g, 0.1, 0.3)), mask)
+    return _finish(size, diffuse, f0, rough + 0.02 * relief, height, mm_per_px)
+
+
+#: Linear diffuse of woods under a clear finish (sRGB swatches of pine, oak, walnut,
+#: mahogany and cherry, decoded).
+WOODS: dict[str, tuple[float, float, float]] = {
+    "pine": (0.85, 0.68, 0.45),
+    "oak": (0.72, 0.53, 0.32),
+    "walnut": (0.42, 0.28, 0.18),
+    "mahogany": (0.55, 0.25, 0.15),
+    "cherry": (0.65, 0.38, 0.24),
+}
+
+
+def varnished_wood(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
+    """Wood under varnish: growth rings (late wood darker), open pores along the grain,
+    a clear coat glossy or satin, its roughness following the pores and brush marks.
+
+    Ranges: 3–30 rings per tile; late wood 50–80% as bright; pores 0.01–0.04 mm deep;
+    diffuse from ``WOODS`` × 0.6–1.1; varnish F0 0.04–0.05 (n ≈ 1.5), roughness
+    0.05–0.35 on the wood, 0.1–0.4 rougher in the pores (an open-pore finish) or as
+    smooth (filled); brush marks ± 0.03.
+    """
+    u = (torch.arange(size, dtype=torch.float32) + 0.5) / size
+    rings = _i(g, 3, 30)
+    along = _choice(g, [0.0, math.pi / 2])  # grain along x or y
+    warp = _u(g, 0.3, 2.0) * spectral_noise(size, g, _u(g, 0.1, 0.3), stretch=4, angle=along)
+    across = u[:, None].expand(size, size) if along == 0.0 else u[None, :].expand(size, size)
+    phase = (rings * across + warp) % 1.0
+    late = smoothstep(0.55, 0.8, phase) * (1 - smoothstep(0.9, 1.0, phase))
+    pores = smoothstep(1.0, 2.0, spectral_noise(size, g, _u(g, 0.006, 0.012), stretch=8, angle=along))
+    colour = torch.tensor(WOODS[_choice(g, list(WOODS))]) * _u(g, 0.85, 1.05)
+    colour = srgb_to_linear(colour.clamp(0, 1)).view(3, 1, 1)
+    diffuse = colour * (1 - _u(g, 0.2, 0.5) * late) * (1 - 0.4 * pores)
+    height = -_u(g, 0.01, 0.04) * pores + 0.002 * warp
+    brush = spectral_noise(size, g, 0.02, stretch=10, angle=along)
+    open_pores = _u(g, 0, 1) < 0.6
+    rough = _u(g, 0.06, 0.35) * (1 + 0.15 * brush) + (_u(g, 0.1, 0.4) * pores if open_pores else 0.0)
+    return _finish(size, diffuse, _dielectric_f0(g, 0.04, 0.05), rough, height, mm_per_px)
+
+
+# --- prior v2: dark and glossy ----------------------------------------------------------
+
+
+def dark_glossy(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
+    """Dark glossy surfaces, where the highlight is nearly all there is to see: black
+    leather, dark plastics, lacquer (piano black, urushi, dark tinted).
+
+    Ranges: diffuse albedo (linear, every channel) at most 0.05; F0 0.04–0.05. Black
+    leather: albedo 0.01–0.05, grain cells with walls of 10°–25°, roughness 0.2–0.4
+    (+ 0.05 in the grain). Dark plastic: albedo 0.005–0.05, smooth or finely textured
+    (slope up to 10°), roughness 0.05–0.35. Lacquer: albedo 0.002–0.03, orange peel
+    below 3°, roughness 0.03–0.12, with fine scratches 0.1 rougher half the time.
+    """
+    kind = _choice(g, ["black_leather", "dark_plastic", "lacquer"])
+    tint = random_colour(g, (0.0, 0.7), (1.0, 1.0))
+    tint = tint / tint.max()
+    if kind == "black_leather":
+        count = _i(g, 100, 800)
+        f1, f2, value = cells(size, g, count)
+        pitch = size / math.sqrt(count)
+        grain = 1 - torch.exp(-(f2 - f1) / (0.15 * pitch))
+        height = math.tan(math.radians(_u(g, 10, 25))) * 0.15 * pitch * mm_per_px * grain
+        albedo = _u(g, 0.01, 0.05) * (0.9 + 0.1 * value)
+        rough = _u(g, 0.2, 0.4) + 0.05 * (1 - grain)
+    elif kind == "dark_plastic":
+        feature = _u(g, 0.003, 0.02)  # of the tile
+        texture = spectral_noise(size, g, feature) * (_u(g, 0, 1) < 0.5)
+        slope = math.tan(math.radians(_u(g, 0, 10)))
+        height = slope * feature * size * mm_per_px / 4 * texture
+        albedo = torch.full((1, 1), _u(g, 0.005, 0.05))
+        rough = torch.full((1, 1), _u(g, 0.05, 0.35))
+    else:
+        feature = _u(g, 0.02, 0.06)
+        peel = spectral_noise(size, g, feature)
+        height = math.tan(math.radians(_u(g, 0.5, 3))) * feature * size * mm_per_px / 4 * peel
+        albedo = torch.full((1, 1), _u(g, 0.002, 0.03))
+        scratches = smoothstep(0.97, 1.0, 1 - spectral_noise(size, g, 0.005, stretch=30, angle=_u(g, 0, math.pi)).abs())
+        rough = _u(g, 0.03, 0.12) + 0.1 * scratches * (_u(g, 0, 1) < 0.5)
+    diffuse = (tint * albedo).clamp(max=DARK_ALBEDO_MAX)
+    return _finish(size, diffuse, _dielectric_f0(g, 0.04, 0.05), rough, height, mm_per_px)
+
+
+#: The most diffuse albedo (linear) :func:`dark_glossy` draws, in any channel.
+DARK_ALBEDO_MAX = 0.05
+
+
 Generator = Callable[[int, torch.Generator, float], MapSet]
 
 GENERATORS: dict[str, Generator] = {
@@ -453,11 +776,19 @@ GENERATORS: dict[str, Generator] = {
     "mesh": mesh,
     "lace": lace,
     "fluorescent_print": fluorescent_print,
+    "leather_embossed": leather_embossed,
+    "weave_heavy": weave_heavy,
+    "corrugated": corrugated,
+    "metallic_print": metallic_print,
+    "worn": worn,
+    "varnished_wood": varnished_wood,
+    "dark_glossy": dark_glossy,
 }
 FAMILIES = tuple(GENERATORS)
 
-#: How often each family is drawn by :func:`random_material` (relative weights):
-#: fabrics and leathers dominate, as in the paper's data and our users' swatches.
+#: How often each family is drawn by :func:`random_material` under prior v1 (relative
+#: weights): fabrics and leathers dominate, as in the paper's data and our users' swatches.
+#: The v1 families and this order are frozen: published numbers are reproduced from their seeds.
 WEIGHTS: dict[str, float] = {
     "woven_plain": 2.0,
     "woven_twill": 1.5,
@@ -476,6 +807,31 @@ WEIGHTS: dict[str, float] = {
 }
 
 
+#: Prior v2: v1's families at v1's weights, and the families v1 lacks (strong relief,
+#: varying specular and roughness, dark gloss) drawn 11 times in 27 (41%).
+WEIGHTS_V2: dict[str, float] = {
+    **WEIGHTS,
+    "leather_embossed": 2.0,
+    "weave_heavy": 1.5,
+    "corrugated": 1.0,
+    "metallic_print": 1.5,
+    "worn": 1.5,
+    "varnished_wood": 1.5,
+    "dark_glossy": 2.0,
+}
+
+#: The material priors :func:`random_material` draws from, by version: family → weight.
+#: A version, once published, never changes (its seeds must keep drawing the same materials).
+PRIORS: dict[str, dict[str, float]] = {"v1": WEIGHTS, "v2": WEIGHTS_V2}
+
+
+def check_prior(prior: str) -> str:
+    """``prior`` if it names a version of :data:`PRIORS`; else a MatscanError listing them."""
+    if prior not in PRIORS:
+        raise MatscanError(f"prior: {prior!r} is not one of {', '.join(PRIORS)}")
+    return prior
+
+
 def generate(family: str, size: int = 256, seed: int = 0, mm_per_px: float | None = None) -> MapSet:
     """One map set of a family, deterministic from ``seed``.
 
@@ -489,9 +845,14 @@ def generate(family: str, size: int = 256, seed: int = 0, mm_per_px: float | Non
     return GENERATORS[family](size, g, mm_per_px if mm_per_px is not None else 120.0 / size)
 
 
-def random_material(size: int = 256, seed: int = 0, mm_per_px: float | None = None) -> tuple[str, MapSet]:
-    """A map set of a family drawn by ``WEIGHTS``; returns (family, maps)."""
+def random_material(
+    size: int = 256, seed: int = 0, mm_per_px: float | None = None, prior: str = "v1"
+) -> tuple[str, MapSet]:
+    """A map set of a family drawn by the weights of ``prior`` (a key of :data:`PRIORS`);
+    returns (family, maps). Prior v1, the default, draws what every earlier version
+    drew for the same seed."""
+    weights = PRIORS[check_prior(prior)]
+    names = tuple(weights)
     g = torch.Generator().manual_seed((int(seed) * 7919 + 17) % 2**63)
-    weights = torch.tensor([WEIGHTS[f] for f in FAMILIES])
-    family = FAMILIES[int(torch.multinomial(weights, 1, generator=g))]
+    family = names[int(torch.multinomial(torch.tensor([weights[f] for f in names]), 1, generator=g))]
     return family, generate(family, size, int(torch.randint(0, 2**40, (), generator=g)), mm_per_px)
