@@ -1,98 +1,71 @@
-"""Reconstruction cost: seconds and peak memory for 512², 1024² and 3072² with 2, 6
-and 24 lights, networks only and networks + refinement.
+"""Reconstruction cost end to end: `matscan reconstruct` as a user runs it.
 
-Each case runs in a fresh process on a capture simulated in memory from the
-built-in sample's maps (resampled), with the `cpu` preset networks (random
-weights when no shipped weights are installed: the cost is the same). Refinement
-runs REFINE_STEPS steps per tile (default 150, as `matscan reconstruct`); pass a
-smaller number to keep a 3072² run short, e.g. `bench/reconstruct.py 20`.
+Each case is a fresh process running the default command path
+(`matscan reconstruct CAPTURE --out OUT`: load, networks, solver, maps, exports,
+report) on a capture that `matscan simulate` wrote from the built-in sample (8-bit
+sRGB, resampled to the size). Wall seconds include Python's start; the peak resident
+memory is the OS's figure for that process (getrusage of the finished child).
 
-Run by hand: .venv/bin/python bench/reconstruct.py [refine_steps]
+Printed last: seconds per million pixel-lights for each case over the smallest
+case's, so linear scaling in pixels × lights reads as ratios near 1 (measured in one
+run: these machines are noisy).
+
+Run by hand: .venv/bin/python bench/reconstruct.py [SIZE ...] [--lights 6,24] [--solver lm|adam]
+(sizes default 256 512 1024; 3072 takes minutes and GBs: ask for it by name).
 """
 
 from __future__ import annotations
 
-import json
-import resource
+import argparse
+import os
 import subprocess
 import sys
+import tempfile
 import time
-
-import torch
-
-SIZES = (512, 1024, 3072)
-LIGHTS = ("2", "6", "24")
+from pathlib import Path
 
 
-def case(size: int, lights: str, refine: bool, steps: int) -> dict:
-    from matscan.capture import Capture
-    from matscan.capture.virtual import CameraModel, resize_maps, simulate_images
-    from matscan.mapset import read_mapset
-    from matscan.nets import MapNets, preset
-    from matscan.reconstruct import ReconstructConfig, reconstruct_capture
-    from matscan.rig import builtin_rig
-    from matscan.samples import sample_maps_path
+def matscan(*args: str) -> list[str]:
+    return [sys.executable, "-m", "matscan.cli", *args]
 
-    torch.set_num_threads(2)
-    rig = builtin_rig("dome24")
-    indices = list(rig.subset(lights))
-    maps = resize_maps(read_mapset(sample_maps_path()), size)
-    ls = rig.light_set(indices)
-    photos = simulate_images(maps, ls, rig.field_mm, CameraModel(read_noise=0.002))
-    del maps
-    capture = Capture(
-        rig,
-        rig.field_mm,
-        "srgb",
-        photos,
-        photos.amax(1, keepdim=True) >= 1.0,
-        tuple(indices),
-        ls,
-        tuple(f"led_{k:02d}.png" for k in indices),
-    )
-    try:
-        from matscan.weights import load_model
 
-        nets, _ = load_model("default")
-    except Exception:
-        nets = MapNets(24, preset("cpu")).eval()
-    cfg = ReconstructConfig(refine="on" if refine else "off", refine_steps=steps)
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+def run_case(capture: Path, out: Path, solver: str) -> tuple[float, float]:
+    """(wall seconds, peak RSS GiB from the child's rusage) of one reconstruction in a fresh process."""
     t0 = time.perf_counter()
-    res = reconstruct_capture(capture, cfg, nets)
+    pid = os.fork()
+    if pid == 0:  # the child becomes the command, so its peak memory is its own
+        os.execv(sys.executable, matscan("reconstruct", str(capture), "--out", str(out), "--solver", solver))
+    _, status, usage = os.wait4(pid, 0)
     seconds = time.perf_counter() - t0
-    return {
-        "seconds": seconds,
-        "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
-        "before_gib": base,
-        "timings": res.timings,
-    }
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"bench: reconstruct of {capture} failed (exit {os.waitstatus_to_exitcode(status)})")
+    return seconds, usage.ru_maxrss / 2**20
 
 
 def main() -> None:
-    if len(sys.argv) == 5:
-        print(json.dumps(case(int(sys.argv[1]), sys.argv[2], sys.argv[3] == "1", int(sys.argv[4]))))
-        return
-    steps = int(sys.argv[1]) if len(sys.argv) > 1 else 150
-    print(f"refinement: {steps} steps per tile; peak = the process's peak resident memory (GiB)")
-    print(f"{'size':>6} {'lights':>6} {'refine':>6} {'seconds':>8} {'networks s':>10} {'refine s':>9} {'peak GiB':>9}")
-    for size in SIZES:
-        for lights in LIGHTS:
-            for refine in (False, True):
-                out = subprocess.run(
-                    [sys.executable, __file__, str(size), lights, "1" if refine else "0", str(steps)],
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("sizes", nargs="*", type=int, default=[256, 512, 1024])
+    parser.add_argument("--lights", default="6,24")
+    parser.add_argument("--solver", default="lm", choices=["lm", "adam"])
+    args = parser.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for size in args.sizes:
+            for lights in args.lights.split(","):
+                cap = Path(tmp) / f"cap{size}_{lights}"
+                subprocess.run(
+                    matscan("simulate", "@sample", "--out", str(cap), "--size", str(size), "--lights", lights),
+                    check=True,
                     capture_output=True,
-                    text=True,
                 )
-                if out.returncode:
-                    print(f"{size:>6} {lights:>6} {refine!s:>6} failed: {out.stderr.strip().splitlines()[-1]}")
-                    continue
-                r = json.loads(out.stdout)
-                t = r["timings"]
-                print(
-                    f"{size:>6} {lights:>6} {refine!s:>6} {r['seconds']:>8.1f} {t.get('networks_s', 0):>10.1f} "
-                    f"{t.get('refine_s', 0):>9.1f} {r['peak_gib']:>9.2f}"
-                )
+                seconds, peak = run_case(cap, Path(tmp) / f"out{size}_{lights}", args.solver)
+                work = size * size * int(lights) / 1e6
+                rows.append((size, int(lights), seconds, peak, seconds / work))
+                print(f"{size:>6}² {lights:>3} lights: {seconds:7.1f} s wall, peak RSS {peak:5.2f} GiB", flush=True)
+    base = rows[0][4]
+    print(f"\nsolver {args.solver}; seconds per million pixel-lights, relative to {rows[0][0]}² × {rows[0][1]}:")
+    for size, lights, _, _, per in rows:
+        print(f"  {size:>6}² × {lights:>2}: {per / base:5.2f}")
 
 
 if __name__ == "__main__":

@@ -128,6 +128,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
     cfg = ReconstructConfig(
         model=args.model,
         refine=args.refine,
+        solver=args.solver,
         refine_steps=args.steps,
         tile=args.tile,
         emissive=args.emissive,
@@ -450,7 +451,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="refine by inverse rendering (auto: with 10 or more photos, where it helps the networks' maps "
         "(docs/results.md), and always without networks)",
     )
-    p.add_argument("--steps", type=positive_int, default=150, help="refinement steps per tile (default 150)")
+    p.add_argument(
+        "--solver",
+        default="lm",
+        choices=["lm", "adam"],
+        help="lm (default): second-order fit of every pixel at once, with confidence maps; "
+        "adam: first-order descent (with --emissive, always)",
+    )
+    p.add_argument("--steps", type=positive_int, default=150, help="adam refinement steps per tile (default 150)")
     p.add_argument("--tile", type=_number(int, 16), default=512, help="network tile size in pixels (default 512)")
     p.add_argument("--emissive", action="store_true", help="also fit an emissive map (fluorescent inks)")
     p.add_argument(

@@ -221,16 +221,21 @@ def test_emissive_fit_on_a_fluorescent_print(tmp_path):
     assert rmse(with_e.diffuse, truth.diffuse) < 0.7 * rmse(without.diffuse, truth.diffuse)
 
 
-def test_auto_refines_the_networks_maps_from_ten_photos_and_always_without_networks(tmp_path):
+def test_auto_refines_from_the_solvers_photo_count_and_always_without_networks(tmp_path):
     from matscan.nets import MapNets, preset
 
     nets = MapNets(24, preset("tiny"))
+    one, _ = _capture(tmp_path / "o", size=16, lights=[0])
+    two, _ = _capture(tmp_path / "t", size=16, lights=[0, 16])
     six, _ = _capture(tmp_path / "a", size=16, lights=[0, 4, 8, 12, 16, 20])
     ten, _ = _capture(tmp_path / "b", size=16, lights=[4, 6, 8, 10, 12, 14, 16, 18, 20, 22])
-    cfg = ReconstructConfig(refine_steps=2)
-    assert "refine_s" not in reconstruct_capture(six, cfg, nets).timings
-    assert "refine_s" in reconstruct_capture(ten, cfg, nets).timings
-    assert "refine_s" in reconstruct_capture(six, cfg, None).timings
+    lm, adam = ReconstructConfig(), ReconstructConfig(solver="adam", refine_steps=2)
+    assert "refine_s" not in reconstruct_capture(one, lm, nets).timings  # lm: from 2 photos
+    assert "refine_s" in reconstruct_capture(two, lm, nets).timings
+    assert "refine_s" not in reconstruct_capture(six, adam, nets).timings  # adam: from 10
+    assert "refine_s" in reconstruct_capture(ten, adam, nets).timings
+    for cfg in (lm, adam):
+        assert "refine_s" in reconstruct_capture(one, cfg, None).timings
 
 
 def test_the_record_says_how_trained_each_network_is(tmp_path):

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from torch import Tensor
 
 from matscan import __version__
 from matscan.capture import Capture, load_capture
@@ -31,11 +32,13 @@ from matscan.jsonfile import dumps
 from matscan.mapset import CONVENTIONS, MapSet, write_maps
 from matscan.nets import MapNets
 from matscan.outputs import RECORD
+from matscan.reconstruct.lm import SolverConfig
 from matscan.reconstruct.networks import predict_maps
-from matscan.reconstruct.solver import flat_start, refine_maps, rerender_error
+from matscan.reconstruct.solver import flat_start, refine_maps, rerender_error, solve_maps
 from matscan.reconstruct.surface import alpha_from_backlight, height_from_normals
 
 REFINE_CHOICES = ("auto", "on", "off")
+SOLVERS = ("lm", "adam")
 
 
 @dataclass(frozen=True)
@@ -44,7 +47,9 @@ class ReconstructConfig:
 
     model: str = "default"
     refine: str = "auto"  # "auto": on from REFINE_AUTO_PHOTOS photos, or without networks; "on"; "off"
-    refine_steps: int = 150
+    solver: str = "lm"  # "lm": second-order, with confidence maps; "adam": first-order (fits emissive too)
+    lm: SolverConfig = SolverConfig()
+    refine_steps: int = 150  # the settings below are the adam solver's
     refine_lr: float = 0.02
     prior_weight: float = 0.05
     smooth_weight: float = 0.01
@@ -61,6 +66,10 @@ class ReconstructConfig:
         """Refuse settings no reconstruction can use, before any work."""
         if self.refine not in REFINE_CHOICES:
             raise MatscanError(f"refine: {self.refine!r} is not one of {', '.join(REFINE_CHOICES)}")
+        if self.solver not in SOLVERS:
+            raise MatscanError(f"solver: {self.solver!r} is not one of {', '.join(SOLVERS)}")
+        if not isinstance(self.lm, SolverConfig):
+            raise MatscanError(f"lm: expected a SolverConfig, got {type(self.lm).__name__}")
         for name, low in (("refine_steps", 1), ("tile", 16), ("overlap", 0), ("refine_tile", 8), ("validate", 0)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
@@ -73,21 +82,35 @@ class ReconstructConfig:
             raise MatscanError("refine_lr: must be above 0")
 
 
-#: ``--refine auto`` refines captures with at least this many photos. Measured in
-#: docs/results.md (11 materials, Table 4 subsets): from 10 photos up refinement lowers
-#: every error of the networks' maps but specular's (a tie) and halves the re-rendering
-#: error under novel lights; with 1–3 it raises nearly all of them, and with 6 it trades
-#: 1.7° → 5.1° normal error for better diffuse and roughness.
-REFINE_AUTO_PHOTOS = 10
+#: ``--refine auto`` refines captures with at least this many photos, per solver.
+#: adam, measured in docs/results.md (11 materials, Table 4 subsets): from 10 photos up
+#: refinement lowers every error of the networks' maps but specular's (a tie) and halves
+#: the re-rendering error under novel lights; with 1–3 it raises nearly all of them.
+#: lm, measured on five map sets unlike the training set (two texture-photograph sets,
+#: metallic print, embossed leather, dark glossy; 128², 8-bit sRGB): mean novel-light
+#: RMSE of the networks' maps → refined, 1 photo 0.0672 → 0.0673, 2 photos 0.0588 →
+#: 0.0510, 3 photos 0.0499 → 0.0476, 6 photos 0.0436 → 0.0295, 24 photos 0.0340 → 0.0059
+#: (adam's refinement: 0.0104 at 24).
+REFINE_AUTO_PHOTOS = {"lm": 2, "adam": 10}
 
 
 @dataclass
 class Result:
+    """What :func:`reconstruct_capture` found: the maps, warnings, timings, the fitted
+    intensity scale, and (from the ``lm`` solver) a confidence map per map in [0, 1]."""
+
     maps: MapSet
     warnings: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     intensity_scale: float = 1.0
     refine_history: list[float] = field(default_factory=list)
+    refined: bool = False
+    confidence: dict[str, Tensor] = field(default_factory=dict)
+
+
+#: Prior strength of the ``lm`` solver when it starts from flat maps (no networks):
+#: the start knows nothing, so the photos decide nearly everything.
+FLAT_START_PRIOR = 0.2
 
 
 #: A photo whose 99th-percentile linear value is below this is black: 8-bit sRGB code 4 is
@@ -148,10 +171,18 @@ def reconstruct_capture(
     timings["networks_s"] = time.perf_counter() - t0
     used_nets = nets is not None and not capture.rig.per_image_geometry
     refine = cfg.refine == "on" or (
-        cfg.refine == "auto" and (not used_nets or len(capture.files) >= REFINE_AUTO_PHOTOS)
+        cfg.refine == "auto" and (not used_nets or len(capture.files) >= REFINE_AUTO_PHOTOS[cfg.solver])
     )
     result = Result(start, warnings, timings)
-    if refine:
+    if refine and cfg.solver == "lm" and not cfg.emissive:
+        t0 = time.perf_counter()
+        strength = 1.0 if used_nets else FLAT_START_PRIOR
+        result.maps, result.confidence, result.intensity_scale = solve_maps(
+            start, capture, cfg.lm, strength, progress=progress
+        )
+        result.refined = True
+        timings["refine_s"] = time.perf_counter() - t0
+    elif refine:
         t0 = time.perf_counter()
         maps, scale, hist = refine_maps(
             start,
@@ -166,7 +197,8 @@ def reconstruct_capture(
         )
         timings["refine_s"] = time.perf_counter() - t0
         result.maps, result.intensity_scale, result.refine_history = maps, scale, hist
-    elif cfg.emissive:
+        result.refined = True
+    if cfg.emissive and not refine:
         warnings.append("--emissive needs refinement; no emissive map was fitted")
     result.maps = with_special_maps(result.maps, capture, warnings)
     return result
@@ -271,7 +303,8 @@ def reconstruct(
             "mm_per_pixel": list(capture.mm_per_pixel),
             "model": {"name": cfg.model, "file": model_name, "networks": networks},
             "config": asdict(cfg),
-            "refined": bool(res.refine_history),
+            "refined": res.refined,
+            "solver": cfg.solver if res.refined else None,
             "intensity_scale": res.intensity_scale,
             "rerender_rmse": error,
             "warnings": res.warnings,
@@ -288,10 +321,24 @@ def reconstruct(
             record["exports"] = export_all(tmp, res.maps, capture.field_mm, cfg.exr, cfg.directx_normals)
             from matscan.report.html import write_report
 
-            write_report(tmp / "report.html", capture, res.maps, record, res.intensity_scale)
+            record["confidence"] = write_confidence(tmp, res.confidence)
+            write_report(tmp / "report.html", capture, res.maps, record, res.intensity_scale, res.confidence)
             record["timings_s"]["total_s"] = round(time.perf_counter() - t_all, 3)
             (tmp / RECORD).write_text(dumps(record, RECORD), encoding="utf-8")
     return record
+
+
+def write_confidence(folder: Path, confidence: dict[str, Tensor]) -> dict[str, Any]:
+    """Write ``confidence_<map>.png`` (8-bit grey, linear: 1 = the photos determined the
+    value, 0 = the networks' prior filled it in); return the record's entry."""
+    from matscan.imagefile import write_image
+
+    entry: dict[str, Any] = {}
+    for name, t in confidence.items():
+        file = f"confidence_{name}.png"
+        write_image(folder / file, t.clamp(0, 1).permute(1, 2, 0).numpy(), bits=8)
+        entry[name] = {"file": file, "mean": round(float(t.mean()), 4)}
+    return entry
 
 
 def output_bytes(h: int, w: int, cfg: ReconstructConfig) -> int:

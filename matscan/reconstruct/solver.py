@@ -1,5 +1,11 @@
 """The solver: maps fitted to the photos by inverse rendering.
 
+Two solvers share the start (the networks' maps, or :func:`flat_start`):
+:func:`solve_maps`, the default, a batched second-order fit with closed-form albedos
+(:mod:`matscan.reconstruct.lm`, which also gives the confidence maps); and
+:func:`refine_maps`, first-order (Adam) descent on a log-space L1, which also fits
+an emissive map. The rest of this docstring describes the latter.
+
 Per-pixel maps, initialised from the networks (or from :func:`flat_start`), are
 fitted to the photos through the differentiable renderer (L1 in log space,
 saturated pixels masked), with a prior term holding each map near its start
@@ -10,6 +16,8 @@ with the maps. Work is done in pixel tiles, so memory stays bounded at any size.
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -17,6 +25,7 @@ from tqdm import tqdm
 
 from matscan.capture import Capture
 from matscan.mapset import MapSet
+from matscan.reconstruct.lm import SolverConfig, solve
 from matscan.render import flat_albedo, flat_irradiance, render, surface_points
 from matscan.rig import LightSet
 
@@ -186,3 +195,48 @@ def rerender_error(maps: MapSet, capture: Capture, positions: list[int], scale: 
     valid = ~capture.saturated[positions].expand_as(img)
     diff = (img.clamp(0, 1) - capture.images[positions])[valid]
     return float(diff.square().mean().sqrt())
+
+
+def solve_maps(
+    start: MapSet,
+    capture: Capture,
+    cfg: SolverConfig | None = None,
+    strength: float = 1.0,
+    lights_used: list[int] | None = None,
+    progress: bool = False,
+) -> tuple[MapSet, dict[str, Tensor], float]:
+    """Fit maps to the photos with the second-order solver (:mod:`matscan.reconstruct.lm`),
+    starting from and held near ``start``.
+
+    ``strength`` scales the prior (1 for the networks' maps, small for a flat start);
+    a capture with per-image geometry (``flash``) gets one intensity scale first
+    (:func:`_fit_scale`). Returns (maps, confidence per map (1, H, W), intensity scale).
+    """
+    cfg = cfg or SolverConfig()
+    h, w = capture.size
+    used = list(range(len(capture.files))) if lights_used is None else list(lights_used)
+    lights = capture.lights.select(used)
+    photos = capture.images[used]
+    valid = (~capture.saturated[used]).float()
+    points = surface_points(capture.field_mm, (h, w))
+    scale = 1.0
+    if capture.rig.per_image_geometry:
+        scale = float(_fit_scale(start, photos, valid, lights, points).exp())
+    rows = max(1, cfg.tile_pixels // w)
+    tiles = math.ceil(h / rows)
+    with tqdm(total=tiles, desc="solve", unit="tile", disable=not progress or tiles == 1, leave=False) as bar:
+        out, conf = solve(
+            photos / scale,
+            valid,
+            lights,
+            points,
+            start.diffuse,
+            start.specular,
+            start.roughness,
+            start.normal,
+            cfg,
+            strength,
+            progress=lambda done: bar.update(done - bar.n),
+        )
+    extra = {k: v for k, v in start.present().items() if k not in out}
+    return MapSet(**out, **extra), conf, scale

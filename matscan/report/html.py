@@ -98,8 +98,16 @@ def _viewer_textures(maps: MapSet) -> dict[str, str]:
     return out
 
 
-def write_report(path: Path, capture: Capture, maps: MapSet, record: dict[str, Any], scale: float = 1.0) -> None:
-    """Write ``report.html`` (see module doc)."""
+def write_report(
+    path: Path,
+    capture: Capture,
+    maps: MapSet,
+    record: dict[str, Any],
+    scale: float = 1.0,
+    confidence: dict[str, Tensor] | None = None,
+) -> None:
+    """Write ``report.html`` (see module doc); ``confidence``: a (1, H, W) map in [0, 1]
+    per map, shown beside the maps (white: the photos determined it; black: the prior)."""
     rows, overall = per_light_rows(capture, maps, scale)
     e = html.escape
     light_rows = "\n".join(
@@ -119,6 +127,10 @@ def write_report(path: Path, capture: Capture, maps: MapSet, record: dict[str, A
             label = name
         uri = _png_uri(to_display(_shrink(t, DISPLAY), kinds.get(name, "grey")))
         map_cells.append(f"<figure><img src='{uri}' alt='{name}'><figcaption>{e(label)}</figcaption></figure>")
+    for name, t in (confidence or {}).items():
+        uri = _png_uri(to_display(_shrink(t, DISPLAY), "grey"))
+        label = f"{name} confidence (mean {float(t.mean()):.2f})"
+        map_cells.append(f"<figure><img src='{uri}' alt='{e(label)}'><figcaption>{e(label)}</figcaption></figure>")
     numbers = {
         "rig": record.get("rig"),
         "size (px)": record.get("size_px"),

@@ -1,0 +1,391 @@
+"""A batched second-order per-pixel solver: every pixel's maps fitted at once.
+
+For one pixel under light k, the image formation model (design.md, Eq. 1) is, per
+colour channel c,
+
+    m_kc = ρ_c · A_kc + F0_c · S1_kc + S0_kc
+    A_kc  = I_kc E_k (n·l)⁺                       (diffuse)
+    S1_kc = I_kc E_k π D G /(4 n·v) · (1 − w_k)   (Schlick: F = F0 (1 − w) + w,
+    S0_kc = I_kc E_k π D G /(4 n·v) · w_k          w = (1 − v·h)⁵)
+
+with E_k = (R/d)² · lobe. Given roughness r and normal n the model is *linear* in
+(ρ_c, F0_c), so those are solved in closed form (a 2 × 2 ridge regression per pixel
+and channel) and only θ = (r, s_x, s_y) — the normal as slopes, n ∝ (s_x, s_y, 1) —
+is nonlinear: variable projection (Golub & Pereyra 1973). θ is found by
+Levenberg–Marquardt (Marquardt 1963) on all pixels at once, with the Jacobian by
+forward differences of the projected residual, 3 × 3 systems solved in closed form,
+and the damping adapted per pixel. A coarse level (the photos box-filtered) finds
+the basin, after a grid search over roughness; the full level polishes.
+
+Residuals are relative, √W (m − y) with W = valid / (y + τ)², so dark and bright
+pixels count alike (as the log-space loss of the first-order refinement does).
+
+The prior: ridge terms hold ρ and F0 near their start (the networks' maps) and
+quadratic terms hold r and the slopes near theirs, with fixed strengths. Where the
+photos constrain a value (a highlight constrains F0 and r), the data's curvature is
+large and the prior barely matters; where they do not (no highlight ever), the
+prior decides. The ratio data curvature / (data curvature + prior) per parameter is
+the **confidence** of each map: 1 where the photos determined the value, 0 where
+the start filled it in.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from matscan.brdf import ggx_alpha, ggx_distribution, smith_g
+from matscan.errors import MatscanError
+from matscan.rig import LightSet
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Settings of the second-order solver (:func:`solve`).
+
+    Prior strengths are in units of one relative-error observation: 1 means the
+    start counts as much as one photo that pins the value to it.
+    """
+
+    iterations: int = 12  # Levenberg–Marquardt steps on the coarse level
+    fine_iterations: int = 2  # and on the full-resolution level
+    coarse: int = 96  # longer side of the coarse level in pixels (0: no coarse level)
+    tau: float = 0.02  # relative residuals are (m − y)/(y + τ)
+    prior_diffuse: float = 0.1
+    prior_specular: float = 0.2
+    prior_roughness: float = 0.5  # per unit of roughness²
+    prior_normal: float = 0.5  # per unit of slope²
+    tile_pixels: int = 1 << 16  # pixels solved at once (bounds memory)
+
+    def __post_init__(self) -> None:
+        for name in ("iterations", "fine_iterations", "coarse", "tile_pixels"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < (1 if name == "tile_pixels" else 0):
+                raise MatscanError(f"solver.{name}: {value!r} must be a non-negative integer")
+        for name in ("tau", "prior_diffuse", "prior_specular", "prior_roughness", "prior_normal"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise MatscanError(f"solver.{name}: {value!r} must be a finite number of at least 0")
+        if self.tau <= 0:
+            raise MatscanError("solver.tau: must be above 0")
+
+
+@dataclass
+class Geometry:
+    """What the lights and camera give every pixel of a set of P pixels, K lights."""
+
+    l: Tensor  # (K, 3, P) unit, toward the light
+    v: Tensor  # (3, P) or (K, 3, P) unit, toward the camera
+    e: Tensor  # (K, C, P) I_k (R/d)² lobe: irradiance on a surface facing the light, per channel
+
+
+def geometry(lights: LightSet, points: Tensor) -> Geometry:
+    """:class:`Geometry` of ``points`` (P, 3) in mm."""
+    p = points.T  # (3, P)
+    lv = lights.position[:, :, None] - p[None]  # (K, 3, P)
+    d2 = (lv * lv).sum(1)
+    l = lv * torch.rsqrt(d2)[:, None]
+    lobe = (-(lights.axis[:, :, None] * l).sum(1)).clamp_min(1e-30) ** lights.exponent[:, None]
+    e = lights.intensity[:, :, None] * ((lights.reference_distance_mm**2 / d2) * lobe)[:, None]
+    cams = lights.camera
+    if bool((cams == cams[:1]).all()):
+        cv = cams[0][:, None] - p
+        v = cv * torch.rsqrt((cv * cv).sum(0, keepdim=True))
+    else:
+        cv = cams[:, :, None] - p[None]
+        v = cv * torch.rsqrt((cv * cv).sum(1, keepdim=True))
+    return Geometry(l, v, e)
+
+
+def normal_of(theta: Tensor) -> Tensor:
+    """Unit normals (3, P) from θ = (r, s_x, s_y) (3, P)."""
+    n = torch.stack([theta[1], theta[2], torch.ones_like(theta[1])])
+    return n * torch.rsqrt((n * n).sum(0, keepdim=True))
+
+
+def bases(theta: Tensor, geo: Geometry) -> tuple[Tensor, Tensor, Tensor]:
+    """(A, S1, S0), each (K, C, P): the model is ρ·A + F0·S1 + S0 (module doc)."""
+    n = normal_of(theta)
+    l, v = geo.l, geo.v
+    vk = v if v.ndim == 3 else v[None]
+    h = l + vk
+    h = h * torch.rsqrt((h * h).sum(1, keepdim=True).clamp_min(1e-20))
+    n_l = (n[None] * l).sum(1)  # (K, P)
+    n_v = (n[None] * vk).sum(1).expand_as(n_l)
+    n_h = (n[None] * h).sum(1).clamp_min(0)
+    v_h = (vk * h).sum(1).clamp(0, 1)
+    alpha = ggx_alpha(theta[0].clamp(0.02, 1))[None]
+    n_l_c, n_v_c = n_l.clamp_min(1e-7), n_v.clamp_min(1e-7)
+    spec = ggx_distribution(n_h, alpha) * smith_g(n_l_c, n_v_c, alpha) * (math.pi / 4) / n_v_c
+    spec = torch.where((n_l > 0) & (n_v > 0), spec, torch.zeros((), dtype=spec.dtype))
+    w = (1 - v_h) ** 5
+    a = geo.e * n_l.clamp_min(0)[:, None]
+    s = geo.e * spec[:, None]
+    return a, s * (1 - w)[:, None], s * w[:, None]
+
+
+@dataclass
+class Problem:
+    """One set of pixels to solve: photos, weights, geometry and the prior."""
+
+    y: Tensor  # (K, 3, P) photos, linear (divided by any intensity scale)
+    wt: Tensor  # (K, 3, P) W = valid / (y + τ)²
+    geo: Geometry
+    rho0: Tensor  # (3, P) prior means
+    f00: Tensor  # (3, P)
+    theta0: Tensor  # (3, P)
+    lam_d: Tensor  # (3, P) ridge strengths
+    lam_s: Tensor  # (3, P)
+    lam_t: Tensor  # (3, 1) strengths on θ
+
+
+def linear_solve(p: Problem, a: Tensor, s1: Tensor, s0: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """ρ, F0 (3, P) minimising Σ W (ρA + F0 S1 + S0 − y)² + λ_d(ρ − ρ0)² + λ_s(F0 − F0₀)²,
+    within [0, 1]; and the data curvatures (Σ W A², Σ W S1²) (3, P)."""
+    wt, t = p.wt, p.y - s0
+    haa = (wt * a * a).sum(0)
+    hss = (wt * s1 * s1).sum(0)
+    has = (wt * a * s1).sum(0)
+    ga = (wt * a * t).sum(0)
+    gs = (wt * s1 * t).sum(0)
+    h11, h22 = haa + p.lam_d, hss + p.lam_s
+    g1, g2 = ga + p.lam_d * p.rho0, gs + p.lam_s * p.f00
+    det = (h11 * h22 - has * has).clamp_min(1e-12)
+    rho = ((h22 * g1 - has * g2) / det).clamp(0, 1)
+    f0 = ((g2 - has * rho) / h22.clamp_min(1e-12)).clamp(0, 1)  # F0 given the clamped ρ
+    rho = ((g1 - has * f0) / h11.clamp_min(1e-12)).clamp(0, 1)  # and ρ given that F0
+    return rho, f0, haa, hss
+
+
+def residuals(p: Problem, theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The stacked residual vector (CK + 2C + 3, P) at θ with ρ, F0 projected out, and ρ, F0."""
+    a, s1, s0 = bases(theta, p.geo)
+    rho, f0, _, _ = linear_solve(p, a, s1, s0)
+    m = rho[None] * a + f0[None] * s1 + s0
+    k, c = m.shape[:2]
+    data = (p.wt.sqrt() * (m - p.y)).reshape(k * c, -1)
+    prior = torch.cat(
+        [
+            p.lam_d.sqrt() * (rho - p.rho0),
+            p.lam_s.sqrt() * (f0 - p.f00),
+            p.lam_t.sqrt() * (theta - p.theta0),
+        ]
+    )
+    return torch.cat([data, prior]), rho, f0
+
+
+def _solve3(m: Tensor, b: Tensor) -> Tensor:
+    """Solve 3 × 3 systems m (3, 3, P) x = b (3, P) by Cramer's rule (symmetric positive definite)."""
+    c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+    c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+    c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+    det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+    det = torch.where(det.abs() < 1e-20, torch.full_like(det, 1e-20), det)
+    c10 = m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]
+    c11 = m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]
+    c12 = m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]
+    c20 = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+    c21 = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
+    c22 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    x0 = (c00 * b[0] + c10 * b[1] + c20 * b[2]) / det
+    x1 = (c01 * b[0] + c11 * b[1] + c21 * b[2]) / det
+    x2 = (c02 * b[0] + c12 * b[1] + c22 * b[2]) / det
+    return torch.stack([x0, x1, x2])
+
+
+THETA_LOW = torch.tensor([0.02, -3.0, -3.0])[:, None]  # roughness, slopes (about ±72°)
+THETA_HIGH = torch.tensor([1.0, 3.0, 3.0])[:, None]
+_STEPS = (1e-3, 1e-3, 1e-3)  # forward-difference steps for r, s_x, s_y
+
+
+def levenberg_marquardt(p: Problem, theta: Tensor, iterations: int) -> tuple[Tensor, Tensor]:
+    """Refine θ (3, P) for ``iterations`` steps; returns θ and the data part of JᵀJ's
+    diagonal (3, P) at the end (the curvature the confidence uses)."""
+    k3 = p.y.shape[0] * p.y.shape[1]  # the data rows
+    mu = torch.full_like(theta[0], 1e-2)
+    res, _, _ = residuals(p, theta)
+    cost = (res * res).sum(0)
+    jtj_data = torch.zeros_like(theta)
+    for _ in range(iterations):
+        cols = []
+        for j, h in enumerate(_STEPS):
+            tp = theta.clone()
+            tp[j] = tp[j] + h
+            rj, _, _ = residuals(p, tp)
+            cols.append((rj - res) / h)
+        # JᵀJ and Jᵀr from the columns (R, P): products summed over residuals (einsum
+        # would batch over pixels, which is many times slower here)
+        jtj = torch.empty(3, 3, *theta.shape[1:], dtype=theta.dtype)
+        for i in range(3):
+            for j in range(i, 3):
+                jtj[i, j] = jtj[j, i] = (cols[i] * cols[j]).sum(0)
+        jtr = torch.stack([(c * res).sum(0) for c in cols])
+        jtj_data = torch.stack([c[:k3].square().sum(0) for c in cols])
+        damped = jtj.clone()
+        for i in range(3):
+            damped[i, i] = jtj[i, i] * (1 + mu) + 1e-9
+        step = _solve3(damped, -jtr)
+        trial = torch.max(torch.min(theta + step, THETA_HIGH.to(theta)), THETA_LOW.to(theta))
+        res_t, _, _ = residuals(p, trial)
+        cost_t = (res_t * res_t).sum(0)
+        better = cost_t < cost
+        theta = torch.where(better[None], trial, theta)
+        res = torch.where(better[None], res_t, res)
+        cost = torch.where(better, cost_t, cost)
+        mu = torch.where(better, mu * 0.3, mu * 10).clamp(1e-6, 1e6)
+    return theta, jtj_data
+
+
+ROUGHNESS_GRID = (0.08, 0.15, 0.25, 0.35, 0.5, 0.7, 0.9)
+
+
+def grid_start(p: Problem, theta: Tensor) -> Tensor:
+    """θ with each pixel's roughness replaced by the best of a grid (and its start)."""
+    best = theta.clone()
+    res, _, _ = residuals(p, theta)
+    cost = (res * res).sum(0)
+    for r in ROUGHNESS_GRID:
+        t = theta.clone()
+        t[0] = r
+        res, _, _ = residuals(p, t)
+        c = (res * res).sum(0)
+        better = c < cost
+        best[0] = torch.where(better, r, best[0])
+        cost = torch.where(better, c, cost)
+    return best
+
+
+# --- the driver: coarse level, then full resolution in tiles ---------------------------------
+
+
+def _theta_of(roughness: Tensor, normal: Tensor) -> Tensor:
+    """θ (3, H, W) from roughness (1, H, W) and unit normals (3, H, W)."""
+    nz = normal[2:3].clamp_min(0.2)
+    return torch.cat([roughness.clamp(0.02, 1), normal[0:1] / nz, normal[1:2] / nz]).clamp(
+        THETA_LOW.view(3, 1, 1), THETA_HIGH.view(3, 1, 1)
+    )
+
+
+def _pool(t: Tensor, f: int) -> Tensor:
+    return F.avg_pool2d(t.unsqueeze(0) if t.ndim == 3 else t, f, ceil_mode=True).squeeze(0) if f > 1 else t
+
+
+def _problem(
+    y: Tensor,
+    valid: Tensor,
+    geo: Geometry,
+    rho0: Tensor,
+    f00: Tensor,
+    theta0: Tensor,
+    cfg: SolverConfig,
+    strength: float,
+) -> Problem:
+    """A :class:`Problem` over pixels: y (K, 3, P), valid (K, 1, P), priors (·, P).
+
+    θ is fitted to all three channels, not their mean: the darkest channel shows the
+    highlight's shape best (measured: roughness RMSE 0.035 → 0.018 on a brick map set)."""
+    wt = valid.expand_as(y) / (y + cfg.tau) ** 2
+    lam_t = torch.tensor([cfg.prior_roughness, cfg.prior_normal, cfg.prior_normal])[:, None] * strength
+    return Problem(
+        y=y,
+        wt=wt,
+        geo=geo,
+        rho0=rho0,
+        f00=f00,
+        theta0=theta0,
+        lam_d=cfg.prior_diffuse * strength / (rho0 + 0.05) ** 2,
+        # a relative tolerance above an absolute one of 0.1: around a dielectric start (0.04) a
+        # metal's few highlights must still win (with 0.02 there the prior outweighed them)
+        lam_s=cfg.prior_specular * strength / (f00 + 0.1) ** 2,
+        lam_t=lam_t,
+    )
+
+
+def solve(
+    photos: Tensor,
+    valid: Tensor,
+    lights: LightSet,
+    points: Tensor,
+    diffuse: Tensor,
+    specular: Tensor,
+    roughness: Tensor,
+    normal: Tensor,
+    cfg: SolverConfig = SolverConfig(),
+    strength: float = 1.0,
+    progress=None,
+) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    """Fit maps to photos (module doc), starting from (and held near) the given maps.
+
+    Args:
+        photos: (K, 3, H, W) linear, already divided by any intensity scale.
+        valid: (K, 1, H, W) float, 0 where a pixel is saturated.
+        lights: the K photos' lights; points: (H, W, 3) surface points in mm.
+        diffuse, specular, roughness, normal: the start and prior, (3|1, H, W).
+        strength: multiplies every prior (small for a start that knows nothing).
+        progress: a callable taking the number of pixel tiles done, or None.
+
+    Returns:
+        (maps, confidence): diffuse, specular, roughness, normal (3|1, H, W); and
+        per map a (1, H, W) confidence in [0, 1] (module doc).
+    """
+    k, _, h, w = photos.shape
+    theta_start = _theta_of(roughness, normal)
+    correction = torch.zeros_like(theta_start)
+    f = max(1, math.ceil(max(h, w) / cfg.coarse)) if cfg.coarse else 1
+    if f > 1 and cfg.iterations > 0:
+        yc = _pool(photos, f)
+        vc = (_pool(valid, f) > 0.999).float()
+        pc = _pool(points.permute(2, 0, 1), f).permute(1, 2, 0)
+        tc0 = _pool(theta_start, f)
+        hc, wc = yc.shape[-2:]
+        flat = lambda t: t.reshape(t.shape[0], hc * wc)  # noqa: E731
+        prob = _problem(
+            yc.reshape(k, 3, -1),
+            vc.reshape(k, 1, -1),
+            geometry(lights, pc.reshape(-1, 3)),
+            flat(_pool(diffuse, f)),
+            flat(_pool(specular, f)),
+            flat(tc0),
+            cfg,
+            strength,
+        )
+        theta = grid_start(prob, flat(tc0))
+        theta, _ = levenberg_marquardt(prob, theta, cfg.iterations)
+        delta = (theta - flat(tc0)).reshape(3, hc, wc)
+        correction = F.interpolate(delta[None], scale_factor=f, mode="bilinear", align_corners=False)[0, :, :h, :w]
+    theta_full = (theta_start + correction).clamp(THETA_LOW.view(3, 1, 1), THETA_HIGH.view(3, 1, 1))
+
+    out = {
+        "diffuse": torch.empty(3, h, w),
+        "specular": torch.empty(3, h, w),
+        "theta": torch.empty(3, h, w),
+    }
+    conf = {name: torch.empty(1, h, w) for name in ("diffuse", "specular", "roughness", "normal")}
+    rows = max(1, cfg.tile_pixels // w)
+    for done, r0 in enumerate(range(0, h, rows)):
+        r1 = min(h, r0 + rows)
+        px = lambda t, r0=r0, r1=r1: t[..., r0:r1, :].reshape(*t.shape[:-2], -1)  # noqa: E731
+        args = (px(photos), px(valid), geometry(lights, points[r0:r1].reshape(-1, 3)), px(diffuse), px(specular))
+        prob = _problem(*args, px(theta_start), cfg, strength)
+        theta, jtj = levenberg_marquardt(prob, px(theta_full), cfg.fine_iterations)
+        a, s1, s0 = bases(theta, prob.geo)
+        rho, f0, haa, hss = linear_solve(prob, a, s1, s0)
+        shape = (r1 - r0, w)
+        out["diffuse"][:, r0:r1] = rho.reshape(3, *shape)
+        out["specular"][:, r0:r1] = f0.reshape(3, *shape)
+        out["theta"][:, r0:r1] = theta.reshape(3, *shape)
+        conf["diffuse"][0, r0:r1] = (haa / (haa + prob.lam_d)).mean(0).reshape(shape)
+        conf["specular"][0, r0:r1] = (hss / (hss + prob.lam_s)).mean(0).reshape(shape)
+        lam = prob.lam_t.clamp_min(1e-12)
+        conf["roughness"][0, r0:r1] = (jtj[0] / (jtj[0] + lam[0])).reshape(shape)
+        conf["normal"][0, r0:r1] = ((jtj[1] / (jtj[1] + lam[1]) + jtj[2] / (jtj[2] + lam[2])) / 2).reshape(shape)
+        if progress is not None:
+            progress(done + 1)
+    theta = out.pop("theta")
+    out["roughness"] = theta[0:1].clamp(0.02, 1)
+    out["normal"] = normal_of(theta.reshape(3, -1)).reshape(3, h, w)
+    return out, conf
