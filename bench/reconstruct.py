@@ -34,6 +34,9 @@ def run_case(capture: Path, out: Path, solver: str) -> tuple[float, float]:
     t0 = time.perf_counter()
     pid = os.fork()
     if pid == 0:  # the child becomes the command, so its peak memory is its own
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 1)
+        os.dup2(null, 2)
         os.execv(sys.executable, matscan("reconstruct", str(capture), "--out", str(out), "--solver", solver))
     _, status, usage = os.wait4(pid, 0)
     seconds = time.perf_counter() - t0

@@ -74,6 +74,8 @@ def _resolve(path: Path) -> Path:
         return path.resolve()
     except (OSError, RuntimeError) as exc:  # symlink loops
         raise input_error(path, f"cannot resolve this path ({exc})") from None
+    except ValueError:  # an embedded NUL byte
+        raise MatscanError(f"{str(path)!r} is not a usable path (it holds a NUL byte)") from None
 
 
 def capture_inputs(folder: str | Path) -> list[Path]:

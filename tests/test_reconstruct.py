@@ -250,3 +250,22 @@ def test_the_record_says_how_trained_each_network_is(tmp_path):
     model = json.loads((tmp_path / "out" / "matscan.json").read_text())["model"]
     assert (tmp_path / "out" / model["file"]).resolve() == weights.resolve()  # relative to the output
     assert {m: r["steps"] for m, r in model["networks"].items()} == dict.fromkeys(MAPS, 2)
+
+
+def test_black_and_saturated_photos_are_warned_about(tmp_path):
+    # a lens-cap capture (every photo black) and one photo nearly all saturated
+    from dataclasses import replace
+
+    from matscan.reconstruct import check_capture
+
+    cap, _ = _capture(tmp_path, 16, [0, 4, 8])
+    black = replace(cap, images=torch.zeros_like(cap.images))
+    warnings = check_capture(black, ReconstructConfig())
+    assert any("every photo is black" in w for w in warnings)
+    one_dark = replace(cap, images=torch.cat([torch.zeros_like(cap.images[:1]), cap.images[1:]]))
+    assert [w for w in check_capture(one_dark, ReconstructConfig()) if "black" in w][0].startswith(cap.files[0])
+    saturated = cap.saturated.clone()
+    saturated[1] = True
+    warnings = check_capture(replace(cap, saturated=saturated), ReconstructConfig())
+    assert any(w.startswith(cap.files[1]) and "retake it" in w for w in warnings)
+    assert not any("black" in w or "saturated" in w for w in check_capture(cap, ReconstructConfig()))

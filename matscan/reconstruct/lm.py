@@ -79,8 +79,10 @@ class Geometry:
     """What the lights and camera give every pixel of a set of P pixels, K lights."""
 
     l: Tensor  # (K, 3, P) unit, toward the light
-    v: Tensor  # (3, P) or (K, 3, P) unit, toward the camera
+    v: Tensor  # (1, 3, P) or (K, 3, P) unit, toward the camera
     e: Tensor  # (K, C, P) I_k (R/d)² lobe: irradiance on a surface facing the light, per channel
+    h: Tensor  # (K, 3, P) unit half vectors: none of these depend on the maps
+    w: Tensor  # (K, P) Schlick's weight (1 − v·h)⁵
 
 
 def geometry(lights: LightSet, points: Tensor) -> Geometry:
@@ -93,12 +95,14 @@ def geometry(lights: LightSet, points: Tensor) -> Geometry:
     e = lights.intensity[:, :, None] * ((lights.reference_distance_mm**2 / d2) * lobe)[:, None]
     cams = lights.camera
     if bool((cams == cams[:1]).all()):
-        cv = cams[0][:, None] - p
-        v = cv * torch.rsqrt((cv * cv).sum(0, keepdim=True))
+        cv = (cams[0][:, None] - p)[None]
     else:
         cv = cams[:, :, None] - p[None]
-        v = cv * torch.rsqrt((cv * cv).sum(1, keepdim=True))
-    return Geometry(l, v, e)
+    v = cv * torch.rsqrt((cv * cv).sum(1, keepdim=True))
+    h = l + v
+    h = h * torch.rsqrt((h * h).sum(1, keepdim=True).clamp_min(1e-20))
+    w = (1 - (v * h).sum(1).clamp(0, 1)) ** 5
+    return Geometry(l, v, e, h, w)
 
 
 def normal_of(theta: Tensor) -> Tensor:
@@ -109,20 +113,15 @@ def normal_of(theta: Tensor) -> Tensor:
 
 def bases(theta: Tensor, geo: Geometry) -> tuple[Tensor, Tensor, Tensor]:
     """(A, S1, S0), each (K, C, P): the model is ρ·A + F0·S1 + S0 (module doc)."""
-    n = normal_of(theta)
-    l, v = geo.l, geo.v
-    vk = v if v.ndim == 3 else v[None]
-    h = l + vk
-    h = h * torch.rsqrt((h * h).sum(1, keepdim=True).clamp_min(1e-20))
-    n_l = (n[None] * l).sum(1)  # (K, P)
-    n_v = (n[None] * vk).sum(1).expand_as(n_l)
-    n_h = (n[None] * h).sum(1).clamp_min(0)
-    v_h = (vk * h).sum(1).clamp(0, 1)
+    n = normal_of(theta)[None]
+    n_l = (n * geo.l).sum(1)  # (K, P)
+    n_v = (n * geo.v).sum(1).expand_as(n_l)
+    n_h = (n * geo.h).sum(1).clamp_min(0)
     alpha = ggx_alpha(theta[0].clamp(0.02, 1))[None]
     n_l_c, n_v_c = n_l.clamp_min(1e-7), n_v.clamp_min(1e-7)
     spec = ggx_distribution(n_h, alpha) * smith_g(n_l_c, n_v_c, alpha) * (math.pi / 4) / n_v_c
     spec = torch.where((n_l > 0) & (n_v > 0), spec, torch.zeros((), dtype=spec.dtype))
-    w = (1 - v_h) ** 5
+    w = geo.w
     a = geo.e * n_l.clamp_min(0)[:, None]
     s = geo.e * spec[:, None]
     return a, s * (1 - w)[:, None], s * w[:, None]
@@ -141,17 +140,23 @@ class Problem:
     lam_d: Tensor  # (3, P) ridge strengths
     lam_s: Tensor  # (3, P)
     lam_t: Tensor  # (3, 1) strengths on θ
+    sw: Tensor | None = None  # √W, computed once
+
+    def __post_init__(self) -> None:
+        if self.sw is None:
+            self.sw = self.wt.sqrt()
 
 
 def linear_solve(p: Problem, a: Tensor, s1: Tensor, s0: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """ρ, F0 (3, P) minimising Σ W (ρA + F0 S1 + S0 − y)² + λ_d(ρ − ρ0)² + λ_s(F0 − F0₀)²,
     within [0, 1]; and the data curvatures (Σ W A², Σ W S1²) (3, P)."""
-    wt, t = p.wt, p.y - s0
-    haa = (wt * a * a).sum(0)
-    hss = (wt * s1 * s1).sum(0)
-    has = (wt * a * s1).sum(0)
-    ga = (wt * a * t).sum(0)
-    gs = (wt * s1 * t).sum(0)
+    t = p.y - s0
+    wa, ws = p.wt * a, p.wt * s1
+    haa = (wa * a).sum(0)
+    hss = (ws * s1).sum(0)
+    has = (wa * s1).sum(0)
+    ga = (wa * t).sum(0)
+    gs = (ws * t).sum(0)
     h11, h22 = haa + p.lam_d, hss + p.lam_s
     g1, g2 = ga + p.lam_d * p.rho0, gs + p.lam_s * p.f00
     det = (h11 * h22 - has * has).clamp_min(1e-12)
@@ -167,7 +172,7 @@ def residuals(p: Problem, theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     rho, f0, _, _ = linear_solve(p, a, s1, s0)
     m = rho[None] * a + f0[None] * s1 + s0
     k, c = m.shape[:2]
-    data = (p.wt.sqrt() * (m - p.y)).reshape(k * c, -1)
+    data = (p.sw * (m - p.y)).reshape(k * c, -1)
     prior = torch.cat(
         [
             p.lam_d.sqrt() * (rho - p.rho0),

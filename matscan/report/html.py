@@ -64,7 +64,9 @@ def per_light_rows(capture: Capture, maps: MapSet, scale: float) -> tuple[list[d
     rows, total, count = [], 0.0, 0
     for i, file in enumerate(capture.files):
         with torch.no_grad():
-            img = render(maps.diffuse, maps.specular, maps.roughness, maps.normal, capture.lights.select([i]), pts)[0]
+            img = render(
+                maps.diffuse, maps.specular, maps.roughness, maps.normal, capture.lights.select([i]), pts, compile=False
+            )[0]
         img = img * scale
         if maps.emissive is not None:
             img = img + maps.emissive
@@ -77,15 +79,16 @@ def per_light_rows(capture: Capture, maps: MapSet, scale: float) -> tuple[list[d
         rmse = float(diff.square().mean().sqrt()) if diff.numel() else float("nan")
         total += float(diff.square().sum())
         count += diff.numel()
-        err = (linear_to_srgb(img) - linear_to_srgb(photo)).abs().mean(0)
+        small_img, small_photo = _shrink(img, DISPLAY), _shrink(photo, DISPLAY)  # what the page shows
+        err = (linear_to_srgb(small_img) - linear_to_srgb(small_photo)).abs().mean(0)
         rows.append(
             {
                 "file": file,
                 "light": capture.light_indices[i],
                 "rmse": rmse,
-                "photo": _png_uri(to_display(_shrink(photo, DISPLAY)), "jpeg"),
-                "render": _png_uri(to_display(_shrink(img, DISPLAY)), "jpeg"),
-                "error": _png_uri(heat(_shrink(err[None], DISPLAY)[0], 0.1)),
+                "photo": _png_uri(to_display(small_photo), "jpeg"),
+                "render": _png_uri(to_display(small_img), "jpeg"),
+                "error": _png_uri(heat(err, 0.1)),
             }
         )
     return rows, (total / max(count, 1)) ** 0.5
