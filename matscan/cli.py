@@ -353,17 +353,17 @@ def cmd_synth(args: argparse.Namespace) -> str:
 
 
 def cmd_train(args: argparse.Namespace) -> str:
-    import json
 
     from matscan.train import TrainConfig, train
 
     values = {}
     if args.config:
+        from matscan.jsonfile import read_json
+
         path = Path(args.config)
-        try:
-            values = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise MatscanError(f"{path}: cannot read a JSON config ({exc})") from None
+        values = read_json(path)
+        if not isinstance(values, dict):
+            raise MatscanError(f"{path}: expected a JSON object of training settings")
     for key in (
         "preset",
         "variant",

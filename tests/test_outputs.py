@@ -117,6 +117,9 @@ def test_single_file_outputs_need_overwrite(tmp_path, capsys):
     assert_refused(argv, capsys, tmp_path, "exists (pass --overwrite")
     assert main([*argv, "--overwrite"]) == 0
     assert out.read_bytes()[:4] == b"\x89PNG" and litter(tmp_path) == []
+    cal = tmp_path / "calibration.json"
+    cal.write_text("{}")
+    assert_refused(["calibrate", "--chart", str(out), "--out", str(cal)], capsys, tmp_path, "exists (pass --overwrite")
 
 
 def test_overwrite_replaces_only_previous_outputs(capture, capsys, tmp_path):
