@@ -49,7 +49,7 @@ def temp_path(path: Path, tag: str = TMP_TAG) -> Path:
 
 
 def _pattern(name: str) -> re.Pattern[str]:
-    return re.compile(rf"^\.{re.escape(name)}\.({TMP_TAG}|{OLD_TAG})-(\d+)-[0-9a-f]+(\.[^.]*)?$")
+    return re.compile(rf"^\.{re.escape(name)}\.({TMP_TAG}|{OLD_TAG})-(\d{{1,10}})-[0-9a-f]+(\.[^.]*)?$")
 
 
 def pid_alive(pid: int) -> bool:
@@ -58,7 +58,7 @@ def pid_alive(pid: int) -> bool:
         return True
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
+    except (ProcessLookupError, OverflowError):
         return False
     except PermissionError:  # exists, owned by someone else
         return True
@@ -140,6 +140,9 @@ def output_lock(path: str | Path) -> Iterator[None]:
             raise input_error(
                 path, "another matscan process is writing this output right now; wait for it or choose another --out"
             ) from None
+        except OSError as exc:  # no locks on this file system (some network mounts)
+            os.close(fd)
+            raise input_error(path, f"cannot lock this output ({exc.strerror}); write it to a local disk") from None
         # the file we locked must still be the one at lp (a releasing holder unlinks it)
         try:
             same = os.fstat(fd).st_ino == os.stat(lp).st_ino

@@ -47,7 +47,6 @@ _LEGACY_OUTPUT_NAMES = {
     "material.gltf",
     "material.mtlx",
     "normal_directx.png",
-    "exr",
 }
 _LEGACY_MAP_STEMS = {
     "diffuse",
@@ -100,15 +99,18 @@ def capture_inputs(folder: str | Path) -> list[Path]:
     for name in names:
         if isinstance(name, str) and name and "\x00" not in name:
             found.append(folder / name)
-    cal = doc.get("calibration")
-    if isinstance(cal, str) and "\x00" not in cal:  # flat fields beside the calibration file
+    cal, cal_doc, base = doc.get("calibration"), None, folder
+    if isinstance(cal, str) and "\x00" not in cal:  # flat fields lie beside the calibration file
+        base = (folder / cal).parent
         try:
             cal_doc = json.loads((folder / cal).read_text(encoding="utf-8"))
-            flats = cal_doc.get("flat_fields", {}) if isinstance(cal_doc, dict) else {}
-            if isinstance(flats, dict):
-                found += [(folder / cal).parent / f for f in flats.values() if isinstance(f, str) and "\x00" not in f]
         except (OSError, ValueError, RecursionError):
             pass
+    elif isinstance(cal, dict):  # an inline calibration: its flat fields are relative to the capture
+        cal_doc = cal
+    flats = cal_doc.get("flat_fields", {}) if isinstance(cal_doc, dict) else {}
+    if isinstance(flats, dict):
+        found += [base / f for f in flats.values() if isinstance(f, str) and f and "\x00" not in f]
     return found
 
 
@@ -137,13 +139,10 @@ def foreign_entries(folder: Path) -> list[str]:
         return [e for e in entries if e not in known]
     if not str(record.get("format", "")).startswith("matscan-reconstruction/"):
         return entries
-    foreign = []
-    for e in entries:  # an older reconstruction: its known file names only
-        top = e.split("/", 1)[0]
-        if top in _LEGACY_OUTPUT_NAMES or Path(top).stem in _LEGACY_MAP_STEMS:
-            continue
-        foreign.append(e)
-    return foreign
+    known = set(_LEGACY_OUTPUT_NAMES) | {"material.bin", "exr/mapset.json"}
+    for stem in _LEGACY_MAP_STEMS:  # an older reconstruction: exactly the names it wrote
+        known |= {f"{stem}.png", f"tex_{stem}.png", f"exr/{stem}.exr"}
+    return [e for e in entries if e not in known]
 
 
 def write_record_files(folder: Path, command: str) -> None:
@@ -200,8 +199,11 @@ def check_destination(
     path = _resolve(given)
     if path.parent == path:
         raise input_error(given, "is the root of the file system; choose a folder for the output")
-    cwd = _resolve(Path.cwd())
-    if _within(cwd, path):
+    try:
+        cwd = _resolve(Path.cwd())
+    except FileNotFoundError:  # the current folder was deleted: nothing to protect there
+        cwd = None
+    if cwd is not None and _within(cwd, path):
         raise input_error(given, "is the current folder or holds it; choose a new folder for the output")
     for item in inputs:
         inp = _resolve(Path(item))
@@ -258,6 +260,7 @@ class OutputClaim:
     kind: str
     overwrite: bool
     command: str
+    overwrite_any: bool = False
 
     def check_space(self, need_bytes: int) -> None:
         """Refuse (before the work) when the file system has less free space than the
@@ -276,6 +279,16 @@ class OutputClaim:
         with atomic_folder(self.path, overwrite=self.overwrite) as tmp:
             yield tmp
             write_record_files(tmp, self.command)
+            # again just before the swap: a file put into the old output during the work
+            # would otherwise go with it
+            if self.path.is_dir() and not self.overwrite_any:
+                foreign = foreign_entries(self.path)
+                if foreign:
+                    raise input_error(
+                        self.path,
+                        f"{foreign[0]} appeared there during the work and matscan did not write it; "
+                        "nothing was replaced (move it, or pass --overwrite-any)",
+                    )
 
     @contextmanager
     def file(self) -> Iterator[Path]:
@@ -296,9 +309,10 @@ def claim_output(
 ) -> Iterator[OutputClaim]:
     """Check ``out`` (:func:`check_destination`), lock it, clear stale temporaries,
     and yield an :class:`OutputClaim` for the rest of the command."""
-    if held(_resolve(Path(out))):  # claimed earlier in this command, and checked then
-        with output_lock(_resolve(Path(out))):
-            yield OutputClaim(_resolve(Path(out)), kind, overwrite, command)
+    resolved = _resolve(Path(out))
+    if held(resolved) and resolved in _ACTIVE:  # claimed earlier in this command, checked then: the same claim
+        with output_lock(resolved):
+            yield _ACTIVE[resolved]
         return
     path = check_destination(out, inputs, kind, overwrite, overwrite_any, flag)
     try:
@@ -307,5 +321,16 @@ def claim_output(
         raise input_error(path.parent, f"cannot create this folder ({exc.strerror})") from None
     with output_lock(path):
         check_destination(out, inputs, kind, overwrite, overwrite_any, flag)  # again, now that it is ours
-        clean_stale(path)
-        yield OutputClaim(path, kind, overwrite, command)
+        try:
+            clean_stale(path)
+        except OSError as exc:
+            raise input_error(path, f"cannot remove a stale temporary beside it ({exc.strerror})") from None
+        _ACTIVE[path] = OutputClaim(path, kind, overwrite, command, overwrite_any)
+        try:
+            yield _ACTIVE[path]
+        finally:
+            del _ACTIVE[path]
+
+
+#: The claims this process holds, by path (a nested claim of the same output reuses its flags).
+_ACTIVE: dict[Path, OutputClaim] = {}

@@ -386,3 +386,41 @@ def test_atomic_folder_turns_os_errors_into_one_line(tmp_path, monkeypatch):
             (tmp / "a").write_bytes(b"x")
     assert "\n" not in str(exc.value)
     assert litter(tmp_path) == [] and not (tmp_path / "o").exists()
+
+
+def test_a_file_added_to_the_old_output_during_the_work_is_kept(capture, tmp_path):
+    out = tmp_path / "out"
+    with claim_output(out, "test", [capture]) as claim, claim.folder() as tmp:
+        (tmp / "a.png").write_bytes(b"first")
+    with pytest.raises(MatscanError, match="appeared there during the work"):
+        with claim_output(out, "test", [capture], overwrite=True) as claim, claim.folder() as tmp:
+            (out / "notes.txt").write_text("written by the user while matscan worked")
+            (tmp / "a.png").write_bytes(b"second")
+    assert (out / "notes.txt").exists() and (out / "a.png").read_bytes() == b"first"
+    assert litter(tmp_path) == []
+
+
+def test_older_outputs_are_recognised_by_exact_names_only(tmp_path):
+    old = tmp_path / "old"
+    (old / "exr").mkdir(parents=True)
+    (old / "matscan.json").write_text('{"format": "matscan-reconstruction/1"}')
+    for name in ("diffuse.png", "report.html", "exr/normal.exr"):
+        (old / name).write_bytes(b"x")
+    assert foreign_entries(old) == []
+    (old / "diffuse.psd").write_bytes(b"a user's file")
+    (old / "exr" / "thesis.docx").write_bytes(b"a user's file")
+    assert foreign_entries(old) == ["diffuse.psd", "exr/thesis.docx"]
+
+
+def test_inline_calibration_flat_fields_are_inputs(tmp_path):
+    from matscan.outputs import capture_inputs
+
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    (cap / "capture.json").write_text(
+        '{"format": "matscan-capture/1", "rig": "dome24", "images": [{"light": 0, "file": "a.png"}],'
+        ' "calibration": {"format": "matscan-calibration/1", "flat_fields": {"0": "../flats/flat0.exr"}}}'
+    )
+    assert cap / "../flats/flat0.exr" in capture_inputs(cap)
+    with pytest.raises(MatscanError, match="contains the input"):
+        check_destination(tmp_path / "flats", [*capture_inputs(cap)], overwrite=True, overwrite_any=True)

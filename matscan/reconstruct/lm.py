@@ -52,7 +52,7 @@ class SolverConfig:
     """
 
     iterations: int = 12  # Levenberg–Marquardt steps on the coarse level
-    fine_iterations: int = 2  # and on the full-resolution level
+    fine_iterations: int = 2  # and on the full-resolution level (at least 1)
     coarse: int = 96  # longer side of the coarse level in pixels (0: no coarse level)
     tau: float = 0.02  # relative residuals are (m − y)/(y + τ)
     prior_diffuse: float = 0.1
@@ -62,10 +62,10 @@ class SolverConfig:
     tile_pixels: int = 1 << 16  # pixels solved at once (bounds memory)
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "fine_iterations", "coarse", "tile_pixels"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < (1 if name == "tile_pixels" else 0):
-                raise MatscanError(f"solver.{name}: {value!r} must be a non-negative integer")
+        for name, low in (("iterations", 0), ("fine_iterations", 1), ("coarse", 0), ("tile_pixels", 1)):
+            value = getattr(self, name)  # fine_iterations ≥ 1: the confidence needs one Jacobian
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise MatscanError(f"solver.{name}: {value!r} must be an integer of at least {low}")
         for name in ("tau", "prior_diffuse", "prior_specular", "prior_roughness", "prior_normal"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
@@ -202,7 +202,8 @@ def _solve3(m: Tensor, b: Tensor) -> Tensor:
     return torch.stack([x0, x1, x2])
 
 
-THETA_LOW = torch.tensor([0.02, -3.0, -3.0])[:, None]  # roughness, slopes (about ±72°)
+#: roughness from √(1e-3) (below it GGX α is clamped, so the data cannot move it), slopes about ±72°
+THETA_LOW = torch.tensor([0.032, -3.0, -3.0])[:, None]
 THETA_HIGH = torch.tensor([1.0, 3.0, 3.0])[:, None]
 _STEPS = (1e-3, 1e-3, 1e-3)  # forward-difference steps for r, s_x, s_y
 
@@ -218,10 +219,13 @@ def levenberg_marquardt(p: Problem, theta: Tensor, iterations: int) -> tuple[Ten
     for _ in range(iterations):
         cols = []
         for j, h in enumerate(_STEPS):
+            # a backward difference where a forward one would pass the upper bound (at r = 1
+            # a forward step is clamped away and the column would be zero)
+            step = torch.where(theta[j] + h > THETA_HIGH[j, 0], -h, h)
             tp = theta.clone()
-            tp[j] = tp[j] + h
+            tp[j] = tp[j] + step
             rj, _, _ = residuals(p, tp)
-            cols.append((rj - res) / h)
+            cols.append((rj - res) / step)
         # JᵀJ and Jᵀr from the columns (R, P): products summed over residuals (einsum
         # would batch over pixels, which is many times slower here)
         jtj = torch.empty(3, 3, *theta.shape[1:], dtype=theta.dtype)
@@ -292,7 +296,10 @@ def _problem(
     """A :class:`Problem` over pixels: y (K, 3, P), valid (K, 1, P), priors (·, P).
 
     θ is fitted to all three channels, not their mean: the darkest channel shows the
-    highlight's shape best (measured: roughness RMSE 0.035 → 0.018 on a brick map set)."""
+    highlight's shape best (measured: roughness RMSE 0.035 → 0.018 on a brick map set).
+    Linear photos may hold small negative values (noise around black); they are read as 0,
+    or a value near −τ would weigh like a million photos."""
+    y = y.clamp_min(0)
     wt = valid.expand_as(y) / (y + cfg.tau) ** 2
     lam_t = torch.tensor([cfg.prior_roughness, cfg.prior_normal, cfg.prior_normal])[:, None] * strength
     return Problem(
@@ -363,6 +370,7 @@ def solve(
         delta = (theta - flat(tc0)).reshape(3, hc, wc)
         correction = F.interpolate(delta[None], scale_factor=f, mode="bilinear", align_corners=False)[0, :, :h, :w]
     theta_full = (theta_start + correction).clamp(THETA_LOW.view(3, 1, 1), THETA_HIGH.view(3, 1, 1))
+    coarse_done = f > 1 and cfg.iterations > 0
 
     out = {
         "diffuse": torch.empty(3, h, w),
@@ -376,18 +384,20 @@ def solve(
         px = lambda t, r0=r0, r1=r1: t[..., r0:r1, :].reshape(*t.shape[:-2], -1)  # noqa: E731
         args = (px(photos), px(valid), geometry(lights, points[r0:r1].reshape(-1, 3)), px(diffuse), px(specular))
         prob = _problem(*args, px(theta_start), cfg, strength)
-        theta, jtj = levenberg_marquardt(prob, px(theta_full), cfg.fine_iterations)
+        theta = px(theta_full) if coarse_done else grid_start(prob, px(theta_full))  # small images: no coarse level
+        theta, jtj = levenberg_marquardt(prob, theta, cfg.fine_iterations)
         a, s1, s0 = bases(theta, prob.geo)
         rho, f0, haa, hss = linear_solve(prob, a, s1, s0)
         shape = (r1 - r0, w)
         out["diffuse"][:, r0:r1] = rho.reshape(3, *shape)
         out["specular"][:, r0:r1] = f0.reshape(3, *shape)
         out["theta"][:, r0:r1] = theta.reshape(3, *shape)
-        conf["diffuse"][0, r0:r1] = (haa / (haa + prob.lam_d)).mean(0).reshape(shape)
-        conf["specular"][0, r0:r1] = (hss / (hss + prob.lam_s)).mean(0).reshape(shape)
-        lam = prob.lam_t.clamp_min(1e-12)
-        conf["roughness"][0, r0:r1] = (jtj[0] / (jtj[0] + lam[0])).reshape(shape)
-        conf["normal"][0, r0:r1] = ((jtj[1] / (jtj[1] + lam[1]) + jtj[2] / (jtj[2] + lam[2])) / 2).reshape(shape)
+        conf["diffuse"][0, r0:r1] = (haa / (haa + prob.lam_d).clamp_min(1e-12)).mean(0).reshape(shape)
+        conf["specular"][0, r0:r1] = (hss / (hss + prob.lam_s).clamp_min(1e-12)).mean(0).reshape(shape)
+        lam = prob.lam_t
+        c = [jtj[i] / (jtj[i] + lam[i]).clamp_min(1e-12) for i in range(3)]
+        conf["roughness"][0, r0:r1] = c[0].reshape(shape)
+        conf["normal"][0, r0:r1] = ((c[1] + c[2]) / 2).reshape(shape)
         if progress is not None:
             progress(done + 1)
     theta = out.pop("theta")
