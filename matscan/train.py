@@ -65,7 +65,6 @@ from matscan.errors import MatscanError, input_error
 from matscan.jsonfile import (
     check_bool,
     check_int,
-    check_list,
     check_number,
     check_object,
     check_string,
@@ -73,9 +72,14 @@ from matscan.jsonfile import (
     short_repr,
 )
 from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights
-from matscan.nets import MAPS, PHOTO_STATISTICS, PRESETS, VARIANTS, MapNets, NetConfig, lights_to, network_input, preset
+from matscan.nets import MAPS, PRESETS, VARIANTS, MapNets, NetConfig, lights_to, network_input, preset
 from matscan.render import surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
+from matscan.weights.format import _trained, training_record
+from matscan.weights.format import check_maps as _check_maps
+from matscan.weights.format import load_weights as load_weights  # re-exported: tools and tests load through train
+from matscan.weights.format import metadata as _metadata
+from matscan.weights.format import net_config_of as _net_config_of
 
 CHECKPOINT = "checkpoint.safetensors"
 
@@ -168,27 +172,9 @@ INIT_KEYS = ("init", "init_step", "init_elapsed_seconds", "init_photo_statistic"
 
 
 def net_config_of(meta: dict[str, str], cfg: TrainConfig, where: str = "weights") -> NetConfig:
-    """The network config a checkpoint or weights file was trained with: its stored
-    ``net_config``, or, for files written before that was stored, the preset's with
-    the median ``photo_statistic`` (the only statistic there was then).
-
-    A stored config is checked field by field (``where`` names the file in errors).
-    """
-    if "net_config" in meta:
-        return _check_net_config(loads_text(meta["net_config"], f"{where}: net_config"), f"{where}: net_config")
-    return NetConfig(**{**asdict(preset(cfg.preset)), "photo_statistic": "median"})
-
-
-def _metadata(path: Path) -> dict[str, str]:
-    """The string metadata of a safetensors file; a damaged header is a one-line error."""
-    from safetensors import safe_open
-
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            return f.metadata() or {}
-    except Exception as exc:  # safetensors raises its own error types for a damaged header
-        detail = " ".join(str(exc).split())[:200]
-        raise input_error(path, f"not a readable safetensors file ({detail})") from None
+    """The network config a checkpoint or weights file was trained with
+    (:func:`matscan.weights.format.net_config_of`, with the run's preset as the fallback)."""
+    return _net_config_of(meta, cfg.preset, where)
 
 
 def _config_of(meta: dict[str, str], path: Path) -> TrainConfig:
@@ -198,40 +184,6 @@ def _config_of(meta: dict[str, str], path: Path) -> TrainConfig:
         raise input_error(path, "not a matscan weights file (no training config in its metadata)")
     where = f"{path}: {key}"
     return _check_train_config(loads_text(meta[key], where), where)
-
-
-#: Bounds on a stored network shape: beyond every preset, small enough to build.
-_NET_BOUNDS = {"base": (1, 1024), "growth": (0, 1024), "depth": (1, 12), "global_dim": (0, 65536)}
-_WEIGHTS_FORMATS = ("matscan-weights/1", "matscan-checkpoint/1")
-_RECORD_KEYS = {"steps": True, "elapsed_seconds": True, "from": False}
-
-
-def _check_net_config(data: Any, where: str) -> NetConfig:
-    """A :class:`NetConfig` from its stored JSON object, every field checked."""
-    obj = check_object(data, where, {f.name: False for f in fields(NetConfig)})
-    values: dict[str, Any] = {}
-    for f in fields(NetConfig):
-        if f.name not in obj:
-            continue
-        w = f"{where}.{f.name}"
-        if f.name in _NET_BOUNDS:
-            values[f.name] = check_int(obj[f.name], w, *_NET_BOUNDS[f.name])
-        elif isinstance(f.default, bool):
-            values[f.name] = check_bool(obj[f.name], w)
-        else:
-            values[f.name] = check_string(obj[f.name], w, tuple(PHOTO_STATISTICS))
-    net = NetConfig(**values)
-    if max(net.channels()) > 1024:
-        raise MatscanError(f"{where}: base + growth × depth = {max(net.channels())} channels; at most 1024")
-    return net
-
-
-def _check_maps(value: Any, where: str) -> tuple[str, ...]:
-    """A non-empty list of distinct map names."""
-    maps = tuple(check_string(m, f"{where}[{i}]", MAPS) for i, m in enumerate(check_list(value, where, "map names")))
-    if len(set(maps)) != len(maps):
-        raise MatscanError(f"{where}: names a map twice")
-    return maps
 
 
 def _check_train_config(data: Any, where: str) -> TrainConfig:
@@ -266,60 +218,6 @@ def _check_like(default: Any, value: Any, where: str) -> None:
         check_number(value, where)
     elif isinstance(default, str) and not isinstance(value, str):
         raise MatscanError(f"{where}: expected a string, got {short_repr(value)}")
-
-
-def _check_records(value: Any, where: str, maps: tuple[str, ...]) -> None:
-    """Per-network training records (``networks``, ``init_networks``): one for each of ``maps``."""
-    records = check_object(value, where, dict.fromkeys(MAPS, False))
-    for m in maps:
-        if m not in records:
-            raise MatscanError(f"{where}: no record of the {m} network")
-    for m, record in records.items():
-        rec = check_object(record, f"{where}.{m}", _RECORD_KEYS)
-        check_int(rec["steps"], f"{where}.{m}.steps", 0)
-        check_number(rec["elapsed_seconds"], f"{where}.{m}.elapsed_seconds", 0)
-        if "from" in rec:
-            check_string(rec["from"], f"{where}.{m}.from")
-
-
-def _check_metadata(meta: dict[str, str], path: Path, cfg: TrainConfig) -> tuple[str, ...]:
-    """Check the metadata fields that loading and :func:`training_record` read; return the
-    file's maps (its ``maps`` field, or the training config's)."""
-    if "format" in meta and meta["format"] not in _WEIGHTS_FORMATS:
-        raise input_error(path, f"format: {short_repr(meta['format'])} is not one of {', '.join(_WEIGHTS_FORMATS)}")
-    maps = cfg.maps
-    if "maps" in meta:
-        maps = _check_maps(meta["maps"].split(","), f"{path}: maps")
-    for key in ("step", "init_step", "elapsed_seconds", "init_elapsed_seconds"):
-        if key in meta:
-            value = loads_text(meta[key], f"{path}: {key}")
-            (check_int if key.endswith("step") else check_number)(value, f"{path}: {key}", 0)
-    if "networks" in meta:
-        _check_records(loads_text(meta["networks"], f"{path}: networks"), f"{path}: networks", maps)
-        return maps
-    key = "train_config" if meta.get("train_config") else "config"
-    if "maps" not in loads_text(meta[key], f"{path}: {key}"):  # training_record reads them from there
-        raise input_error(path, f"{key}: missing field 'maps'")
-    if "init_networks" in meta:
-        if "step" not in meta:
-            raise input_error(path, "init_networks without step: the metadata is incomplete")
-        where = f"{path}: init_networks"
-        _check_records(loads_text(meta["init_networks"], where), where, cfg.maps)
-    return maps
-
-
-def _check_fits(path: Path, nets: MapNets) -> None:
-    """Refuse a file whose tensors are not exactly those of ``nets`` (names and shapes)."""
-    from safetensors import safe_open
-
-    want = {k: tuple(v.shape) for k, v in nets.state_dict().items()}
-    with safe_open(str(path), framework="pt") as f:
-        stored = [k for k in f.keys() if not k.startswith("opt.")]
-        have = {k.removeprefix("model."): tuple(f.get_slice(k).get_shape()) for k in stored}
-    for k in sorted(set(want) | set(have)):
-        if want.get(k) != have.get(k):
-            shapes = f"{k}: file {have.get(k)}, network {want.get(k)}"
-            raise input_error(path, f"weights do not fit the networks its metadata describes ({shapes})")
 
 
 def sample_lights(indices: Tensor, cfg: TrainConfig, rig) -> LightSet:
@@ -470,48 +368,6 @@ def export_weights(
     with atomic_file(out) as tmp:
         save_file(tensors, str(tmp), metadata=info)
     return out
-
-
-def training_record(meta: dict[str, str]) -> dict[str, dict[str, Any]]:
-    """Per network of a weights file or checkpoint: the steps and seconds of training
-    behind it and where it came from (an assembled file's ``networks``; otherwise the
-    file's own run, with the training each network had in the weights it started from)."""
-    if "networks" in meta:
-        return json.loads(meta["networks"])
-    cfg = json.loads(meta.get("train_config") or meta["config"])
-    if "init_networks" not in meta:  # no init, or one written before per-network records
-        steps, seconds = _trained(meta)
-        return {m: {"steps": steps, "elapsed_seconds": round(seconds, 1)} for m in cfg["maps"]}
-    before = json.loads(meta["init_networks"])
-    step, seconds = int(meta["step"]), float(meta.get("elapsed_seconds", 0))
-    return {
-        m: {"steps": step + before[m]["steps"], "elapsed_seconds": round(seconds + before[m]["elapsed_seconds"], 1)}
-        for m in cfg["maps"]
-    }
-
-
-def _trained(meta: dict[str, str]) -> tuple[int, float]:
-    """Steps and seconds of a file's run, with those of the weights it started from."""
-    steps = int(meta.get("step", 0)) + int(meta.get("init_step", 0))
-    return steps, float(meta.get("elapsed_seconds", 0)) + float(meta.get("init_elapsed_seconds", 0))
-
-
-def load_weights(path: str | Path) -> tuple[MapNets, dict[str, str]]:
-    """Networks from an exported weights file (or a checkpoint), in eval mode."""
-    path = Path(path)
-    if not path.is_file():
-        raise input_error(path, "no such weights file")
-    meta = _metadata(path)
-    cfg = _config_of(meta, path)
-    # an export may hold networks of several runs (export_weights fill_from): its maps name them
-    cfg = TrainConfig(**{**asdict(cfg), "maps": _check_metadata(meta, path, cfg)})
-    net = net_config_of(meta, cfg, str(path))
-    with torch.device("meta"):  # shapes only: a file that does not fit allocates nothing
-        _check_fits(path, build_nets(cfg, net))
-    nets = build_nets(cfg, net)
-    load_checkpoint(path, nets, None)
-    nets.eval()
-    return nets, meta
 
 
 # --- evaluation ----------------------------------------------------------------------

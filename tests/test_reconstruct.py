@@ -269,3 +269,20 @@ def test_black_and_saturated_photos_are_warned_about(tmp_path):
     warnings = check_capture(replace(cap, saturated=saturated), ReconstructConfig())
     assert any(w.startswith(cap.files[1]) and "retake it" in w for w in warnings)
     assert not any("black" in w or "saturated" in w for w in check_capture(cap, ReconstructConfig()))
+
+
+def test_loading_the_shipped_weights_imports_no_training_code():
+    # nanoGPT's sample.py imports only the model: so does matscan.weights (a fresh interpreter)
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from matscan.weights import load_model\n"
+        "nets, meta = load_model('default')\n"
+        "print(' '.join(sorted(m for m in sys.modules if m.startswith('matscan'))))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert "matscan.nets" in out and "matscan.weights.format" in out
+    for training in ("matscan.train", "matscan.data", "matscan.losses", "matscan.materials"):
+        assert training not in out, out

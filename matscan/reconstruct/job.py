@@ -281,8 +281,8 @@ def reconstruct(
         claim.check_space(output_bytes(h, w, cfg))
         nets, model_name, networks = None, "none", {}
         if cfg.model != "none":
-            from matscan.train import training_record
             from matscan.weights import load_model
+            from matscan.weights.format import training_record
 
             nets, model_meta = load_model(cfg.model)
             file = model_path(cfg.model).resolve()  # relative to this folder, so the record moves with it

@@ -34,9 +34,9 @@ def model_path(name_or_path: str | Path) -> Path:
 def load_model(name_or_path: str | Path = "default"):
     """(MapNets in eval mode, metadata) for a shipped name or a weights file.
 
-    The file's metadata is checked field by field (:func:`matscan.train.load_weights`):
-    a damaged or foreign file is a one-line error naming it.
+    The file's metadata is checked field by field (:func:`matscan.weights.format.load_weights`):
+    a damaged or foreign file is a one-line error naming it. No training code is imported.
     """
-    from matscan.train import load_weights
+    from matscan.weights.format import load_weights
 
     return load_weights(model_path(name_or_path))
