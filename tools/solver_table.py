@@ -33,7 +33,7 @@ def main() -> None:
         for lights in sorted(groups, key=int):
             g = groups[lights]
             means = [sum(r[m] for r in g) / len(g) for m in METRICS]
-            print(f"| {label} | {lights} | " + " | ".join(f"{v:.4f}" for v in means) + f" |")
+            print(f"| {label} | {lights} | " + " | ".join(f"{v:.4f}" for v in means) + " |")
 
 
 if __name__ == "__main__":
