@@ -62,7 +62,7 @@ def held_out_errors(capture: Capture, solver: str) -> list[float]:
         with torch.no_grad():
             img = render(m.diffuse, m.specular, m.roughness, m.normal, capture.lights.select([i]), pts)[0]
         img = (img * res.intensity_scale).clamp(0, 1)
-        errors.append(float((linear_to_srgb(img) - linear_to_srgb(capture.images[i])).square().mean().sqrt()))
+        errors.append(float((linear_to_srgb(img) - linear_to_srgb(capture.linear([i])[0])).square().mean().sqrt()))
     return errors
 
 

@@ -23,6 +23,7 @@ would need a second OpenCV build beside ours.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
@@ -34,6 +35,7 @@ import torch
 from torch import Tensor
 
 from matscan.capture import Capture
+from matscan.capture.folder import Correction
 from matscan.color import srgb_to_linear
 from matscan.errors import MatscanError, input_error
 from matscan.jsonfile import check_file_name, check_number, check_object, check_vector, short_repr
@@ -250,7 +252,7 @@ def light_scales(
                 grey.lights.select([i]),
                 pts,
             )[0]
-        photo = grey.images[i]
+        photo = grey.linear([i])[0]
         s = _grey_scale(photo, model, grey.saturated[i], k)
         scales[str(k)] = s
         if flat_fields:
@@ -429,18 +431,20 @@ def apply_calibration(capture: Capture) -> Capture:
     if "light_scales" in cal:
         warnings += _coverage_warning(scales, capture, name)
 
-    images = capture.images
-    if matrix is not None:
-        images = torch.einsum("ij,njhw->nihw", matrix, images)
-    out = []
-    for img, k in zip(images, capture.light_indices, strict=True):
-        if k is not None and k in scales:
-            img = img / scales[k]
-        if k is not None and k in flats:
-            img = img / _flat_field(flats[k], capture.size)
-        out.append(img)
-    corrected = torch.stack(out).clamp_min(0)
-    if not torch.isfinite(corrected).all():
+    gain = torch.tensor(
+        [scales.get(k, 1.0) if k is not None else 1.0 for k in capture.light_indices], dtype=torch.float32
+    )
+    flat_of = {k: _flat_field(path, capture.size).half() for k, path in flats.items()}
+    correction = Correction(
+        matrix, gain, tuple(flat_of.get(k) if k is not None else None for k in capture.light_indices)
+    )
+    # the largest corrected value, in float64: the photos are corrected as they are read, so
+    # an overflow must be found now
+    top = float((capture.lut if capture.lut is not None else capture.images).abs().max())
+    row_sum = float(matrix.abs().sum(1).max()) if matrix is not None else 1.0
+    smallest_flat = min((float(f.min()) for f in flat_of.values()), default=1.0)
+    bound = top * row_sum / float(gain.min()) / smallest_flat
+    if not math.isfinite(bound) or bound > torch.finfo(torch.float32).max:
         raise MatscanError(f"{place}: the calibration makes the photos overflow; check its values")
     meta = {**capture.meta, "warnings": [*capture.meta.get("warnings", []), *warnings]}
-    return replace(capture, images=corrected, meta=meta)
+    return replace(capture, correction=correction, meta=meta)

@@ -321,7 +321,7 @@ def _sheet(args: argparse.Namespace, source: Path) -> str:
         labels = [
             f"light {k}" if k is not None else Path(f).stem for k, f in zip(cap.light_indices, cap.files, strict=True)
         ]
-        tiles += capture_tiles(cap.images, labels)
+        tiles += capture_tiles((cap.linear([i])[0] for i in range(len(cap.files))), labels)
         tiles += capture_tiles(list(cap.backlight.values()), list(cap.backlight)) if cap.backlight else []
     else:
         tiles += map_tiles(read_mapset(_maps_arg(args.folder)).present())

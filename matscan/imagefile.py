@@ -1,9 +1,10 @@
 """Reading and writing image files: PNG (8/16-bit), JPEG, TIFF, EXR, and RAW.
 
 Arrays here are NumPy, (H, W, C) with C in {1, 3, 4}, RGB order (OpenCV's BGR
-is converted at this boundary and nowhere else). Integer files are returned as
-float32 code values scaled to [0, 1] (no transfer function applied: the caller
-knows whether a file is sRGB or linear); EXR and float TIFF are returned as
+is converted at this boundary and nowhere else). Integer files keep their code
+values (``ImageData.stored``, uint8 or uint16) and give them as float32 scaled to
+[0, 1] on request (``ImageData.pixels``; no transfer function applied: the caller
+knows whether a file is sRGB or linear); EXR and float TIFF are float32 as
 stored. Writers take a temporary name and rename it when the file is complete.
 
 Libraries: OpenCV for PNG/JPEG (exact 16-bit PNG), tifffile for TIFF, the
@@ -20,6 +21,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import cv2
@@ -42,15 +44,23 @@ READABLE = PNG_LIKE | TIFF | EXR | RAW
 class ImageData:
     """Pixels of an image file and how they were stored.
 
-    ``pixels`` is float32 (H, W, C). ``kind`` is ``"int"`` (code values scaled
-    to [0, 1], transfer function unknown), ``"float"`` (EXR or float TIFF,
-    linear), or ``"raw"`` (a camera RAW developed linearly). ``bits`` is the
-    stored bit depth (8, 16, 32).
+    ``stored`` is (H, W, C) as the file holds it: uint8 or uint16 code values, or
+    float32. ``pixels`` is the same as float32, integer codes scaled to [0, 1]
+    (made on first use: a 16-bit photo's codes take half the memory of its floats).
+    ``kind`` is ``"int"`` (code values, transfer function unknown), ``"float"`` (EXR
+    or float TIFF, linear), or ``"raw"`` (a camera RAW developed linearly, 16-bit
+    codes). ``bits`` is the stored bit depth (8, 16, 32).
     """
 
-    pixels: np.ndarray
+    stored: np.ndarray
     kind: str
     bits: int
+
+    @cached_property
+    def pixels(self) -> np.ndarray:
+        if self.stored.dtype == np.float32:
+            return self.stored
+        return self.stored.astype(np.float32) / np.float32((1 << self.bits) - 1)
 
 
 def _suffix(path: Path) -> str:
@@ -142,16 +152,17 @@ def read_image(path: str | Path) -> ImageData:
         if said and said not in detail:
             detail = f"{detail}: {said}"
         raise input_error(path, f"cannot read as {suffix[1:].upper()} ({_one_line(detail)})") from None
-    if img.pixels.ndim != 3 or 0 in img.pixels.shape:
-        raise input_error(path, f"holds no pixels (an array of shape {img.pixels.shape})")
+    if img.stored.ndim != 3 or 0 in img.stored.shape:
+        raise input_error(path, f"holds no pixels (an array of shape {img.stored.shape})")
     return img
 
 
-def _to_float(arr: np.ndarray, path: Path) -> tuple[np.ndarray, str, int]:
+def _stored(arr: np.ndarray, path: Path) -> tuple[np.ndarray, str, int]:
+    """(stored values, kind, bits): integer codes kept as they are, floats as float32."""
     if arr.dtype == np.uint8:
-        return arr.astype(np.float32) / 255.0, "int", 8
+        return arr, "int", 8
     if arr.dtype == np.uint16:
-        return arr.astype(np.float32) / 65535.0, "int", 16
+        return arr, "int", 16
     if arr.dtype in (np.float32, np.float64, np.float16):
         return arr.astype(np.float32), "float", 32
     raise input_error(path, f"unsupported pixel type {arr.dtype}")
@@ -171,8 +182,8 @@ def _read_cv2(path: Path) -> ImageData:
         arr = arr[:, :, ::-1]
     elif arr.shape[2] == 4:
         arr = arr[:, :, [2, 1, 0, 3]]
-    pixels, kind, bits = _to_float(np.ascontiguousarray(arr), path)
-    return ImageData(pixels, kind, bits)
+    stored, kind, bits = _stored(np.ascontiguousarray(arr), path)
+    return ImageData(stored, kind, bits)
 
 
 def _read_tiff(path: Path) -> ImageData:
@@ -181,8 +192,8 @@ def _read_tiff(path: Path) -> ImageData:
     arr = _channels_last(np.asarray(tifffile.imread(str(path))))
     if arr.ndim != 3:
         raise input_error(path, f"expected a 2-D image, got an array of shape {arr.shape}")
-    pixels, kind, bits = _to_float(arr, path)
-    return ImageData(pixels, kind, bits)
+    stored, kind, bits = _stored(arr, path)
+    return ImageData(stored, kind, bits)
 
 
 def _read_exr(path: Path) -> ImageData:
@@ -212,7 +223,7 @@ def _read_raw(path: Path) -> ImageData:
         raise input_error(path, "reading RAW files needs the 'raw' extra: pip install 'matscan[raw]'") from None
     with rawpy.imread(str(path)) as raw:
         rgb = raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=True, user_flip=0)
-    return ImageData(rgb.astype(np.float32) / 65535.0, "raw", 16)
+    return ImageData(np.ascontiguousarray(rgb, dtype=np.uint16), "raw", 16)
 
 
 def write_image(path: str | Path, pixels: np.ndarray, bits: int = 8, header: dict | None = None) -> None:

@@ -96,4 +96,7 @@ def test_light_scales_are_recovered_and_applied(tmp_path):
     corrected = apply_calibration(load_capture(tmp_path / "grey"))
     # after correction every light images the card as an intensity-1 light would
     reference = _grey_capture(tmp_path / "ref", [1.0] * 5, indices)
-    assert (corrected.images - reference.images).abs().mean() < 0.002
+    assert (corrected.linear() - reference.linear()).abs().mean() < 0.002
+    # corrected as read: a region of one photo is the same region of all of them, corrected
+    torch.testing.assert_close(corrected.linear([1], rows=(2, 5)), corrected.linear()[[1], :, 2:5], rtol=0, atol=0)
+    assert corrected.images.dtype == load_capture(tmp_path / "grey").images.dtype  # codes stay codes

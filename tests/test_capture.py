@@ -28,7 +28,7 @@ def test_srgb_8_bit_round_trip(tmp_path):
     assert cap.light_indices == (4, 0, 17)
     assert cap.rig == rig
     assert cap.images.shape == (3, 3, 10, 10)
-    err = (linear_to_srgb(cap.images) - linear_to_srgb(imgs)).abs().max()
+    err = (linear_to_srgb(cap.linear()) - linear_to_srgb(imgs)).abs().max()
     assert err <= 0.5 / 255 + 1e-6
     torch.testing.assert_close(cap.lights.position, rig.light_set([4, 0, 17]).position)
     assert cap.mm_per_pixel == (12.0, 12.0)
@@ -38,10 +38,32 @@ def test_linear_16_bit_and_exr_round_trips(tmp_path):
     rig = builtin_rig("dome24")
     imgs = photos()
     write_capture(tmp_path / "c16", imgs, rig, light_indices=[1, 2, 3], encoding="linear", bits=16)
-    assert (load_capture(tmp_path / "c16").images - imgs).abs().max() <= 0.5 / 65535 + 1e-7
+    assert (load_capture(tmp_path / "c16").linear() - imgs).abs().max() <= 0.5 / 65535 + 1e-7
     hdr = imgs * 3  # unclipped in float files
     write_capture(tmp_path / "c32", hdr, rig, light_indices=[1, 2, 3], encoding="linear", bits=32)
-    torch.testing.assert_close(load_capture(tmp_path / "c32").images, hdr, rtol=0, atol=0)
+    torch.testing.assert_close(load_capture(tmp_path / "c32").linear(), hdr, rtol=0, atol=0)
+
+
+def test_photos_are_held_as_stored_and_read_a_region_at_a_time(tmp_path):
+    rig = builtin_rig("dome24")
+    imgs = photos()
+    write_capture(tmp_path / "c8", imgs, rig, light_indices=[4, 0, 17], encoding="srgb", bits=8)
+    write_capture(tmp_path / "c16", imgs, rig, light_indices=[4, 0, 17], encoding="linear", bits=16)
+    cap8, cap16 = load_capture(tmp_path / "c8"), load_capture(tmp_path / "c16")
+    assert cap8.images.dtype == torch.uint8 and cap16.images.dtype == torch.uint16  # 1 and 2 bytes a value
+    # the decoding table is IEC 61966-2-1's: code 128 is ((128/255 + 0.055)/1.055)^2.4 = 0.2158605
+    assert abs(float(cap8.lut[128]) - 0.2158605) < 1e-6 and float(cap16.lut[65535]) == 1.0
+    for cap in (cap8, cap16):
+        full = cap.linear()
+        assert full.dtype == torch.float32
+        part = cap.linear([2, 0], rows=(3, 7), cols=(1, 9))
+        torch.testing.assert_close(part, full[[2, 0], :, 3:7, 1:9], rtol=0, atol=0)
+        picked = cap.select([2, 0])
+        assert picked.light_indices == (17, 4) and picked.files == (cap.files[2], cap.files[0])
+        torch.testing.assert_close(picked.linear(), full[[2, 0]], rtol=0, atol=0)
+        strips = cap.strips(budget=25)  # 10 pixels wide, 3 photos: 25 values hold no row, so one row each
+        assert strips == [(r, r + 1) for r in range(10)]
+        assert cap.strips(budget=60) == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]
 
 
 def test_saturation_mask(tmp_path):

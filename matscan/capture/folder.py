@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +56,49 @@ _IMAGE_KEYS_INDEXED = ("light", "file")
 _IMAGE_KEYS_PER_IMAGE = ("file", "light_position_mm", "camera_position_mm", "intensity")
 
 
+#: Pixel-photos in one strip of work (:meth:`Capture.strips`): 4 Mi, so a float32 strip of
+#: photos is 48 MiB and what is computed from it a few times that.
+STRIP_VALUES = 1 << 22
+
+
+def _region(
+    t: Tensor, positions: Sequence[int] | None, rows: tuple[int, int] | None, cols: tuple[int, int] | None
+) -> Tensor:
+    if rows is not None:  # views first; picking photos copies, and only the region then
+        t = t[..., rows[0] : rows[1], :]
+    if cols is not None:
+        t = t[..., cols[0] : cols[1]]
+    if positions is not None:
+        t = t[list(positions)]
+    return t
+
+
+@dataclass(frozen=True)
+class Correction:
+    """A capture's calibration, applied to photos as they are read (design.md, the
+    capture folder): linear = max(0, M · photo / gain / flat)."""
+
+    matrix: Tensor | None  # (3, 3) colour matrix, or None
+    gain: Tensor  # (N,) each photo is divided by its light's scale
+    flats: tuple[Tensor | None, ...]  # per photo a (1|3, H, W) float16 flat field, or None
+
+    def select(self, positions: Sequence[int]) -> Correction:
+        return Correction(self.matrix, self.gain[list(positions)], tuple(self.flats[i] for i in positions))
+
+    def apply(
+        self, photos: Tensor, index: list[int], rows: tuple[int, int] | None, cols: tuple[int, int] | None
+    ) -> Tensor:
+        """Correct photos (n, 3, h, w), the region ``rows``/``cols`` of photos ``index``."""
+        if self.matrix is not None:
+            photos = torch.einsum("ij,njhw->nihw", self.matrix, photos)
+        photos = photos / self.gain[index].view(-1, 1, 1, 1)
+        for j, i in enumerate(index):
+            flat = self.flats[i]
+            if flat is not None:
+                photos[j] /= _region(flat, None, rows, cols).float()
+        return photos.clamp_min(0)
+
+
 @dataclass
 class Capture:
     """A capture in memory.
@@ -64,7 +107,10 @@ class Capture:
         rig: the rig it was taken with.
         field_mm: (width, height) the images cover, mm.
         encoding: ``"srgb"`` or ``"linear"`` as recorded.
-        images: (N, 3, H, W) float32 linear radiance (as exposed; not calibrated).
+        images: (N, 3, H, W) the photos as stored: uint8 or uint16 code values
+            (decoded by ``lut``), or float32 linear radiance. Read them with
+            :meth:`linear`, which decodes and calibrates a region at a time, so a
+            large capture is never held as floats all at once.
         saturated: (N, 1, H, W) bool, pixels at the top code value of an integer file.
         light_indices: the rig light of each image, or ``None`` with per-image geometry.
         lights: the light and camera geometry of each image, for the renderer.
@@ -76,6 +122,10 @@ class Capture:
             one-line messages) once calibration has been applied.
         calibration_file: the calibration file, when the capture names one (its
             flat fields lie beside it).
+        lut: (2^bits,) float32 linear radiance of each code value, when ``images``
+            holds codes (sRGB-decoded or scaled, by the capture's encoding).
+        correction: the calibration, applied by :meth:`linear` as photos are read
+            (:func:`matscan.calibrate.apply_calibration` sets it).
     """
 
     rig: Rig
@@ -91,10 +141,61 @@ class Capture:
     folder: Path | None = None
     meta: dict[str, Any] = field(default_factory=dict)
     calibration_file: Path | None = None
+    lut: Tensor | None = None
+    correction: Correction | None = None
 
     @property
     def size(self) -> tuple[int, int]:
         return (self.images.shape[-2], self.images.shape[-1])
+
+    def linear(
+        self,
+        positions: Sequence[int] | None = None,
+        rows: tuple[int, int] | None = None,
+        cols: tuple[int, int] | None = None,
+    ) -> Tensor:
+        """Photos as float32 linear radiance, calibrated: (n, 3, h, w), a new tensor.
+
+        ``positions``: which photos (indices into ``images``; all by default);
+        ``rows``, ``cols``: (start, stop) of the region (the whole image by default).
+        """
+        values = _region(self.images, positions, rows, cols)
+        out = self.lut[values.int()] if self.lut is not None else values.float().clone()
+        if self.correction is not None:
+            index = range(len(self.images)) if positions is None else positions
+            out = self.correction.apply(out, list(index), rows, cols)
+        return out
+
+    def saturation(
+        self,
+        positions: Sequence[int] | None = None,
+        rows: tuple[int, int] | None = None,
+        cols: tuple[int, int] | None = None,
+    ) -> Tensor:
+        """The saturation masks (n, 1, h, w) of a region (arguments as for :meth:`linear`)."""
+        return _region(self.saturated, positions, rows, cols)
+
+    def select(self, positions: Sequence[int]) -> Capture:
+        """The same capture with only some of its photos (positions in ``images``)."""
+        positions = list(positions)
+        return replace(
+            self,
+            images=self.images[positions],
+            saturated=self.saturated[positions],
+            light_indices=tuple(self.light_indices[i] for i in positions),
+            lights=self.lights.select(positions),
+            files=tuple(self.files[i] for i in positions),
+            correction=None if self.correction is None else self.correction.select(positions),
+        )
+
+    def strips(self, photos: int | None = None, budget: int = STRIP_VALUES) -> list[tuple[int, int]]:
+        """Row ranges (start, stop) covering the image, each holding at most ``budget``
+        pixel-photos (at least one row) for ``photos`` photos (all by default): the unit
+        of work that keeps memory bounded whatever the capture's size."""
+        h, w = self.size
+        n = len(self.images) if photos is None else photos
+        step = max(1, budget // max(1, w * n))
+        return [(r, min(h, r + step)) for r in range(0, h, step)]
 
     @property
     def mm_per_pixel(self) -> tuple[float, float]:
@@ -103,10 +204,11 @@ class Capture:
         return (self.field_mm[0] / w, self.field_mm[1] / h)
 
 
-def _decode(path: Path, encoding: str) -> tuple[Tensor, Tensor]:
-    """Read an image as linear (3, H, W) plus its saturation mask (1, H, W)."""
+def _decode(path: Path) -> tuple[Tensor, Tensor, tuple[int, bool]]:
+    """Read an image as stored (3, H, W): uint8/uint16 codes or float32; its saturation
+    mask (1, H, W); and how it is stored: (bit depth, 32 for floats; whether it is RAW)."""
     img = read_image(path)
-    px = img.pixels
+    px = img.stored
     if px.ndim != 3 or px.shape[0] == 0 or px.shape[1] == 0:
         raise input_error(path, f"holds no pixels (shape {px.shape})")
     if px.shape[2] == 4:
@@ -115,16 +217,32 @@ def _decode(path: Path, encoding: str) -> tuple[Tensor, Tensor]:
         px = np.repeat(px, 3, axis=2)
     elif px.shape[2] != 3:
         raise input_error(path, f"has {px.shape[2]} channels; expected RGB or grey")
-    t = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).float()
+    t = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).contiguous()
+    if img.kind in ("int", "raw"):
+        saturated = (t == (1 << img.bits) - 1).any(dim=0, keepdim=True)
+        return t, saturated, (img.bits, img.kind == "raw")
     if not torch.isfinite(t).all():
         raise input_error(path, "holds NaN or infinite values")
-    if img.kind in ("int", "raw"):
-        saturated = (t >= 1.0 - 0.5 / ((1 << img.bits) - 1)).any(dim=0, keepdim=True)
-    else:
-        saturated = torch.zeros(1, *t.shape[1:], dtype=torch.bool)
-    if img.kind == "int" and encoding == "srgb":
-        t = srgb_to_linear(t)
-    return t, saturated
+    return t, torch.zeros(1, *t.shape[1:], dtype=torch.bool), (32, False)
+
+
+def code_lut(bits: int, encoding: str, raw: bool = False) -> Tensor:
+    """Linear radiance of every code value of a ``bits``-bit file: sRGB-decoded for an
+    sRGB capture (not for RAW, which is developed linearly), else scaled to [0, 1]."""
+    codes = torch.arange(1 << bits, dtype=torch.float64) / ((1 << bits) - 1)
+    return (srgb_to_linear(codes) if encoding == "srgb" and not raw else codes).float()
+
+
+def _to_linear(t: Tensor, stored: tuple[int, bool], encoding: str) -> Tensor:
+    """Stored values (from :func:`_decode`) as float32 linear."""
+    bits, raw = stored
+    return t if bits == 32 else code_lut(bits, encoding, raw)[t.int()]
+
+
+def _linear(path: Path, encoding: str) -> tuple[Tensor, Tensor]:
+    """An image as float32 linear (3, H, W) and its saturation mask (backlight photos)."""
+    t, saturated, stored = _decode(path)
+    return _to_linear(t, stored, encoding), saturated
 
 
 def _position(value: Any, where: str) -> tuple[float, float, float]:
@@ -243,18 +361,25 @@ def _read_entries(raw: Any, rig: Rig, path: Path, lights: Sequence[int] | None) 
     return chosen
 
 
-def _read_images(folder: Path, chosen: list[_Entry], encoding: str) -> tuple[Tensor, Tensor]:
-    """(N, 3, H, W) linear photos and (N, 1, H, W) saturation masks, all of one size."""
-    images, saturated = [], []
+def _read_images(folder: Path, chosen: list[_Entry], encoding: str) -> tuple[Tensor, Tensor, Tensor | None]:
+    """(N, 3, H, W) photos as stored, (N, 1, H, W) saturation masks, and the table
+    decoding codes to linear (None for float photos). Photos of mixed depth or kind
+    (8- and 16-bit, or RAW and PNG) are all held as float32 linear."""
+    images, saturated, kinds = [], [], []
     for entry in chosen:
         file_path = folder / entry.file
-        img, sat = _decode(file_path, encoding)
+        img, sat, stored = _decode(file_path)
         if images and img.shape[1:] != images[0].shape[1:]:
             h, w = images[0].shape[1:]
             raise input_error(file_path, f"is {img.shape[2]}×{img.shape[1]} pixels but {chosen[0].file} is {w}×{h}")
         images.append(img)
         saturated.append(sat)
-    return torch.stack(images), torch.stack(saturated)
+        kinds.append(stored)
+    if len(set(kinds)) == 1 and kinds[0][0] != 32:
+        bits, raw = kinds[0]
+        return torch.stack(images), torch.stack(saturated), code_lut(bits, encoding, raw)
+    linear = [_to_linear(img, stored, encoding) for img, stored in zip(images, kinds, strict=True)]
+    return torch.stack(linear), torch.stack(saturated), None
 
 
 def _read_backlight(raw: Any, folder: Path, path: Path, encoding: str, like: Tensor, first: str) -> dict[str, Tensor]:
@@ -263,7 +388,7 @@ def _read_backlight(raw: Any, folder: Path, path: Path, encoding: str, like: Ten
     backlight: dict[str, Tensor] = {}
     for key, file in bl.items():
         file_path = folder / check_file_name(file, f"{path}: backlight.{key}")
-        img, _ = _decode(file_path, encoding)
+        img, _ = _linear(file_path, encoding)
         if img.shape[1:] != like.shape[1:]:
             h, w = like.shape[1:]
             raise input_error(file_path, f"is {img.shape[2]}×{img.shape[1]} pixels but {first} is {w}×{h}")
@@ -307,7 +432,7 @@ def load_capture(folder: str | Path, lights: Sequence[int] | None = None) -> Cap
     if "simulation" in data:
         meta["simulation"] = check_object(data["simulation"], f"{path}: simulation")
 
-    images, saturated = _read_images(folder, chosen, encoding)
+    images, saturated, lut = _read_images(folder, chosen, encoding)
     backlight: dict[str, Tensor] = {}
     if "backlight" in data:
         backlight = _read_backlight(data["backlight"], folder, path, encoding, images[0], chosen[0].file)
@@ -330,6 +455,7 @@ def load_capture(folder: str | Path, lights: Sequence[int] | None = None) -> Cap
         folder=folder,
         meta=meta,
         calibration_file=calibration_file,
+        lut=lut,
     )
 
 

@@ -117,12 +117,20 @@ FLAT_START_PRIOR = 0.2
 DARK_PHOTO = 0.002
 
 
+def _bright_fraction(capture: Capture, i: int) -> float:
+    """The fraction of photo ``i``'s values at or above :data:`DARK_PHOTO`, a strip at a time."""
+    count = 0
+    for rows in capture.strips(photos=1):
+        count += int((capture.linear([i], rows) >= DARK_PHOTO).sum())
+    return count / capture.images[i].numel()
+
+
 def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
     """Warnings about a capture, each saying what to do: saturated or black photos,
     missing lights, and what reading and calibrating it found (``capture.meta["warnings"]``)."""
     warnings = list(capture.meta.get("warnings", []))
     dark = []
-    for file, img, sat in zip(capture.files, capture.images, capture.saturated, strict=True):
+    for i, (file, sat) in enumerate(zip(capture.files, capture.saturated, strict=True)):
         frac = float(sat.float().mean())
         if frac > 0.5:
             warnings.append(
@@ -133,7 +141,7 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
                 f"{file}: {frac:.1%} of pixels saturated; lower the exposure (they are left out of the fit)"
             )
         # the 99th percentile is below DARK_PHOTO exactly when under 1% of the values reach it
-        if float((img >= DARK_PHOTO).float().mean()) < 0.01:
+        if _bright_fraction(capture, i) < 0.01:
             dark.append(file)
     if dark and len(dark) == len(capture.files):
         warnings.append(
@@ -223,16 +231,7 @@ def with_special_maps(maps: MapSet, capture: Capture, warnings: list[str]) -> Ma
 
 def subset_capture(capture: Capture, positions: list[int]) -> Capture:
     """The same capture with only some of its photos (positions in its image list)."""
-    from dataclasses import replace
-
-    return replace(
-        capture,
-        images=capture.images[positions],
-        saturated=capture.saturated[positions],
-        light_indices=tuple(capture.light_indices[i] for i in positions),
-        lights=capture.lights.select(positions),
-        files=tuple(capture.files[i] for i in positions),
-    )
+    return capture.select(positions)
 
 
 def leave_out_validation(capture: Capture, count: int, cfg: ReconstructConfig, nets: MapNets | None) -> dict:

@@ -32,6 +32,7 @@ the start filled it in.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -317,6 +318,14 @@ def _problem(
     )
 
 
+#: Reads rows r0:r1 of the photos: (linear photos (K, 3, r, W) divided by any intensity
+#: scale, valid (K, 1, r, W) float, 0 where saturated).
+PhotoRows = Callable[[int, int], tuple[Tensor, Tensor]]
+
+#: Pixel-photos read at once while pooling the coarse level (4 Mi: 48 MiB of float32 photos).
+POOL_VALUES = 1 << 22
+
+
 def solve(
     photos: Tensor,
     valid: Tensor,
@@ -344,13 +353,49 @@ def solve(
         (maps, confidence): diffuse, specular, roughness, normal (3|1, H, W); and
         per map a (1, H, W) confidence in [0, 1] (module doc).
     """
-    k, _, h, w = photos.shape
+    return solve_rows(
+        lambda r0, r1: (photos[..., r0:r1, :], valid[..., r0:r1, :]),
+        len(photos),
+        lights,
+        points,
+        diffuse,
+        specular,
+        roughness,
+        normal,
+        cfg,
+        strength,
+        progress,
+    )
+
+
+def solve_rows(
+    read: PhotoRows,
+    k: int,
+    lights: LightSet,
+    points: Tensor,
+    diffuse: Tensor,
+    specular: Tensor,
+    roughness: Tensor,
+    normal: Tensor,
+    cfg: SolverConfig = SolverConfig(),
+    strength: float = 1.0,
+    progress=None,
+) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    """:func:`solve` with the K photos read a band of rows at a time by ``read``
+    (:data:`PhotoRows`), so they need never be in memory as floats all at once."""
+    h, w = diffuse.shape[-2:]
     theta_start = _theta_of(roughness, normal)
     correction = torch.zeros_like(theta_start)
     f = max(1, math.ceil(max(h, w) / cfg.coarse)) if cfg.coarse else 1
     if f > 1 and cfg.iterations > 0:
-        yc = _pool(photos, f)
-        vc = (_pool(valid, f) > 0.999).float()
+        # pooled a band at a time; bands start at multiples of f, so each window lies in one
+        band = max(f, POOL_VALUES // max(1, w * k) // f * f)
+        yc, vc = [], []
+        for r0 in range(0, h, band):
+            y, v = read(r0, min(h, r0 + band))
+            yc.append(_pool(y, f))
+            vc.append((_pool(v, f) > 0.999).float())
+        yc, vc = torch.cat(yc, dim=-2), torch.cat(vc, dim=-2)
         pc = _pool(points.permute(2, 0, 1), f).permute(1, 2, 0)
         tc0 = _pool(theta_start, f)
         hc, wc = yc.shape[-2:]
@@ -382,7 +427,14 @@ def solve(
     for done, r0 in enumerate(range(0, h, rows)):
         r1 = min(h, r0 + rows)
         px = lambda t, r0=r0, r1=r1: t[..., r0:r1, :].reshape(*t.shape[:-2], -1)  # noqa: E731
-        args = (px(photos), px(valid), geometry(lights, points[r0:r1].reshape(-1, 3)), px(diffuse), px(specular))
+        y, v = read(r0, r1)
+        args = (
+            y.reshape(k, 3, -1),
+            v.reshape(k, 1, -1),
+            geometry(lights, points[r0:r1].reshape(-1, 3)),
+            px(diffuse),
+            px(specular),
+        )
         prob = _problem(*args, px(theta_start), cfg, strength)
         theta = px(theta_full) if coarse_done else grid_start(prob, px(theta_full))  # small images: no coarse level
         theta, jtj = levenberg_marquardt(prob, theta, cfg.fine_iterations)

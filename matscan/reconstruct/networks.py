@@ -24,8 +24,9 @@ def _slots(capture: Capture, n_lights: int, r0: int, c0: int, th: int, tw: int) 
     """A tile of the photos in their rig-light slots (1, L, 3, th, tw), and the presence (1, L)."""
     photos = torch.zeros(1, n_lights, 3, th, tw)
     present = torch.zeros(1, n_lights)
-    for img, k in zip(capture.images, capture.light_indices, strict=True):
-        photos[0, k] = img[:, r0 : r0 + th, c0 : c0 + tw]
+    region = capture.linear(rows=(r0, r0 + th), cols=(c0, c0 + tw))
+    for img, k in zip(region, capture.light_indices, strict=True):
+        photos[0, k] = img
         present[0, k] = 1
     return photos, present
 

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from matscan.capture import Capture
 from matscan.mapset import MapSet
-from matscan.reconstruct.lm import SolverConfig, solve
+from matscan.reconstruct.lm import SolverConfig, solve_rows
 from matscan.render import flat_albedo, flat_irradiance, render, surface_points
 from matscan.rig import LightSet
 
@@ -37,8 +37,10 @@ def flat_start(capture: Capture) -> MapSet:
     irradiance (:func:`matscan.render.flat_albedo`), flat normal, roughness 0.5,
     specular 0.04."""
     h, w = capture.size
-    e = flat_irradiance(capture.lights, surface_points(capture.field_mm, (h, w)))
-    rho = flat_albedo(capture.images, e)
+    points = surface_points(capture.field_mm, (h, w))
+    rho = torch.empty(3, h, w)
+    for r0, r1 in capture.strips():
+        rho[:, r0:r1] = flat_albedo(capture.linear(rows=(r0, r1)), flat_irradiance(capture.lights, points[r0:r1]))
     normal = torch.zeros(3, h, w)
     normal[2] = 1
     return MapSet(rho, torch.full((3, h, w), 0.04), torch.full((1, h, w), 0.5), normal)
@@ -87,14 +89,12 @@ def refine_maps(
     h, w = capture.size
     used = list(range(len(capture.files))) if lights_used is None else list(lights_used)
     lights = capture.lights.select(used)
-    photos = capture.images[used]
-    valid = (~capture.saturated[used]).float()
     if fit_intensity is None:
         fit_intensity = capture.rig.per_image_geometry
     points_all = surface_points(capture.field_mm, (h, w))
     scale = torch.zeros(())  # log intensity scale
     if fit_intensity:  # one global scale, from the starting maps
-        scale = _fit_scale(start, photos, valid, lights, points_all)
+        scale = _fit_scale(*_pooled(capture, used, points_all), lights)
     out = {
         name: t.clone() for name, t in start.present().items() if name in ("diffuse", "specular", "roughness", "normal")
     }
@@ -111,8 +111,9 @@ def refine_maps(
         params = {k: v.requires_grad_() for k, v in params.items()}
         init = {k: v.detach().clone() for k, v in params.items()}
         opt = torch.optim.Adam(params.values(), lr=lr)
-        target = torch.log(LOG_EPS + photos[..., r0 : r0 + th, c0 : c0 + tw])
-        mask = valid[..., r0 : r0 + th, c0 : c0 + tw]
+        region = {"rows": (r0, r0 + th), "cols": (c0, c0 + tw)}
+        target = torch.log(LOG_EPS + capture.linear(used, **region))
+        mask = (~capture.saturation(used, **region)).float()
         pts = points_all[r0 : r0 + th, c0 : c0 + tw]
         k = float(scale.exp())
         for _ in range(steps):
@@ -142,10 +143,30 @@ def refine_maps(
     return MapSet(**out, **extra), float(scale.exp()), history
 
 
-def _fit_scale(
-    start: MapSet, photos: Tensor, valid: Tensor, lights: LightSet, points: Tensor, steps: int = 150, size: int = 48
-) -> Tensor:
-    """Log intensity scale k of an uncalibrated capture.
+#: The longer side, in pixels, of the image the intensity scale is fitted on.
+SCALE_SIZE = 48
+
+
+def _pooled(capture: Capture, used: list[int], points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Photos ``used`` box-filtered to about :data:`SCALE_SIZE` on the longer side (read a
+    band of rows at a time), their valid masks (1 where no pixel in the box is saturated)
+    and the surface points (H, W, 3) filtered alike."""
+    h, w = capture.size
+    factor = max(1, max(h, w) // SCALE_SIZE)
+    if factor == 1:
+        return capture.linear(used), (~capture.saturation(used)).float(), points
+    band = max(factor, capture.strips(len(used))[0][1] // factor * factor)
+    photos, valid = [], []
+    for r0 in range(0, h // factor * factor, band):
+        rows = (r0, min(h // factor * factor, r0 + band))
+        photos.append(F.avg_pool2d(capture.linear(used, rows), factor))
+        valid.append((F.avg_pool2d((~capture.saturation(used, rows)).float(), factor) > 0.999).float())
+    points = F.avg_pool2d(points.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0)
+    return torch.cat(photos, dim=-2), torch.cat(valid, dim=-2), points
+
+
+def _fit_scale(photos: Tensor, valid: Tensor, points: Tensor, lights: LightSet, steps: int = 150) -> Tensor:
+    """Log intensity scale k of an uncalibrated capture, from small photos (:func:`_pooled`).
 
     Diffuse light only fixes k·ρ; the highlights fix k, because dielectric F0 is
     known (0.04): on a downsampled image, fit one k and one roughness, with flat
@@ -157,12 +178,6 @@ def _fit_scale(
     are masked, and with them goes what fixes the scale). A calibrated capture
     needs none of this.
     """
-    h, w = photos.shape[-2:]
-    factor = max(1, max(h, w) // size)
-    if factor > 1:
-        photos = F.avg_pool2d(photos, factor)
-        valid = (F.avg_pool2d(valid, factor) > 0.999).float()
-        points = F.avg_pool2d(points.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0)
     hh, ww = photos.shape[-2:]
     normal = torch.zeros(3, hh, ww)
     normal[2] = 1
@@ -187,15 +202,29 @@ def _fit_scale(
 
 def rerender_error(maps: MapSet, capture: Capture, positions: list[int], scale: float = 1.0) -> float:
     """RMSE between photos (at these capture positions) and renderings of ``maps``,
-    over unsaturated pixels."""
+    over unsaturated pixels (a band of rows at a time)."""
     lights = capture.lights.select(positions)
     pts = surface_points(capture.field_mm, capture.size)
-    with torch.no_grad():
-        # eager: compiling the fused kernel costs more (3.3 s at 512² × 24) than it saves once
-        img = render(maps.diffuse, maps.specular, maps.roughness, maps.normal, lights, pts, compile=False) * scale
-    valid = ~capture.saturated[positions].expand_as(img)
-    diff = (img.clamp(0, 1) - capture.images[positions])[valid]
-    return float(diff.square().mean().sqrt())
+    total, count = 0.0, 0
+    for rows in capture.strips(len(positions)):
+        r = slice(*rows)
+        with torch.no_grad():
+            # eager: compiling the fused kernel costs more (3.3 s at 512² × 24) than it saves once
+            img = render(
+                maps.diffuse[:, r],
+                maps.specular[:, r],
+                maps.roughness[:, r],
+                maps.normal[:, r],
+                lights,
+                pts[r],
+                compile=False,
+            )
+        img = (img * scale).clamp_(0, 1).sub_(capture.linear(positions, rows))
+        valid = ~capture.saturation(positions, rows).expand_as(img)
+        diff = img[valid]
+        total += float(diff.square().sum())
+        count += diff.numel()
+    return (total / count) ** 0.5 if count else float("nan")
 
 
 def solve_maps(
@@ -217,18 +246,21 @@ def solve_maps(
     h, w = capture.size
     used = list(range(len(capture.files))) if lights_used is None else list(lights_used)
     lights = capture.lights.select(used)
-    photos = capture.images[used]
-    valid = (~capture.saturated[used]).float()
     points = surface_points(capture.field_mm, (h, w))
     scale = 1.0
     if capture.rig.per_image_geometry:
-        scale = float(_fit_scale(start, photos, valid, lights, points).exp())
+        scale = float(_fit_scale(*_pooled(capture, used, points), lights).exp())
+
+    def read(r0: int, r1: int) -> tuple[Tensor, Tensor]:
+        photos = capture.linear(used, (r0, r1))
+        return photos / scale if scale != 1.0 else photos, (~capture.saturation(used, (r0, r1))).float()
+
     rows = max(1, cfg.tile_pixels // w)
     tiles = math.ceil(h / rows)
     with tqdm(total=tiles, desc="solve", unit="tile", disable=not progress or tiles == 1, leave=False) as bar:
-        out, conf = solve(
-            photos / scale,
-            valid,
+        out, conf = solve_rows(
+            read,
+            len(used),
             lights,
             points,
             start.diffuse,

@@ -63,22 +63,35 @@ def per_light_rows(capture: Capture, maps: MapSet, scale: float) -> tuple[list[d
     pts = surface_points(capture.field_mm, capture.size)
     rows, total, count = [], 0.0, 0
     for i, file in enumerate(capture.files):
-        with torch.no_grad():
-            img = render(
-                maps.diffuse, maps.specular, maps.roughness, maps.normal, capture.lights.select([i]), pts, compile=False
-            )[0]
-        img = img * scale
-        if maps.emissive is not None:
-            img = img + maps.emissive
-        if maps.alpha is not None:
-            img = img * maps.alpha
-        img = img.clamp(0, 1)
-        photo = capture.images[i]
-        ok = ~capture.saturated[i].expand_as(img)
-        diff = (img - photo)[ok]
-        rmse = float(diff.square().mean().sqrt()) if diff.numel() else float("nan")
-        total += float(diff.square().sum())
-        count += diff.numel()
+        img = torch.empty(3, *capture.size)  # one photo and its rendering at a time, made a band at a time
+        photo = torch.empty(3, *capture.size)
+        sq, n = 0.0, 0
+        for band_rows in capture.strips(1):
+            r = slice(*band_rows)
+            with torch.no_grad():
+                band = render(
+                    maps.diffuse[:, r],
+                    maps.specular[:, r],
+                    maps.roughness[:, r],
+                    maps.normal[:, r],
+                    capture.lights.select([i]),
+                    pts[r],
+                    compile=False,
+                )[0]
+            band = band * scale
+            if maps.emissive is not None:
+                band = band + maps.emissive[:, r]
+            if maps.alpha is not None:
+                band = band * maps.alpha[:, r]
+            img[:, r] = band.clamp(0, 1)
+            photo[:, r] = capture.linear([i], band_rows)[0]
+            ok = ~capture.saturation([i], band_rows)[0].expand_as(band)
+            diff = (img[:, r] - photo[:, r])[ok]
+            sq += float(diff.square().sum())
+            n += diff.numel()
+        rmse = (sq / n) ** 0.5 if n else float("nan")
+        total += sq
+        count += n
         small_img, small_photo = _shrink(img, DISPLAY), _shrink(photo, DISPLAY)  # what the page shows
         err = (linear_to_srgb(small_img) - linear_to_srgb(small_photo)).abs().mean(0)
         rows.append(

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import cv2
@@ -76,8 +76,8 @@ def save_sheet(path: str | Path, sheet: np.ndarray) -> None:
     write_image(Path(path), np.clip(sheet, 0, 1), bits=8)
 
 
-def capture_tiles(images: Tensor, labels: Sequence[str]) -> list[tuple[str, np.ndarray]]:
-    """Tiles for the photos of a capture (linear (N, 3, H, W))."""
+def capture_tiles(images: Iterable[Tensor], labels: Sequence[str]) -> list[tuple[str, np.ndarray]]:
+    """Tiles for the photos of a capture (linear (3, H, W) each)."""
     return [(lab, to_display(img)) for lab, img in zip(labels, images, strict=True)]
 
 
