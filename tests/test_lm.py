@@ -165,3 +165,36 @@ def test_negative_linear_values_and_roughness_at_its_bound():
     # from r = 1 everywhere, the pixels find r = 0.3 (one of 64 settles in another minimum)
     assert float((out["roughness"] - r).abs().median()) < 0.02
     assert float(((out["roughness"] - r).abs() < 0.05).float().mean()) > 0.9
+
+
+def test_bands_and_tiles_do_not_change_the_result(monkeypatch):
+    # every pixel is solved on its own, and the coarse level pools whole windows: so reading
+    # the photos a few rows at a time, and solving a few rows at a time, gives the same maps
+    import matscan.reconstruct.lm as lm
+
+    rig = builtin_rig("dome24")
+    lights = rig.light_set()
+    size = 40
+    rho, f0, r, n = _maps(size, seed=3)
+    pts = surface_points(rig.field_mm, (size, size))
+    photos = render(rho, f0, r, n, lights, pts)
+    start = (torch.full((3, size, size), 0.4), torch.full((3, size, size), 0.04), torch.full((1, size, size), 0.5))
+    flat = torch.zeros(3, size, size)
+    flat[2] = 1
+    reads = []
+
+    def read(r0, r1):
+        reads.append((r0, r1))
+        return photos[..., r0:r1, :], torch.ones(24, 1, r1 - r0, size)
+
+    args = (lights, pts, *start, flat)
+    whole, conf_whole = lm.solve_rows(read, 24, *args, SolverConfig(coarse=10, tile_pixels=size * size))
+    assert reads == [(0, 40), (0, 40)]  # the coarse level in one band, then one tile
+    reads.clear()
+    monkeypatch.setattr(lm, "POOL_VALUES", 24 * size * 8)  # 8 rows a band: two 4-pixel windows
+    banded, conf_banded = lm.solve_rows(read, 24, *args, SolverConfig(coarse=10, tile_pixels=size * 6))
+    assert reads[:5] == [(0, 8), (8, 16), (16, 24), (24, 32), (32, 40)] and reads[5:8] == [(0, 6), (6, 12), (12, 18)]
+    # the same up to float rounding (sums taken in another order, then a few LM steps)
+    for name in whole:
+        assert float((banded[name] - whole[name]).abs().max()) < 1e-3
+        assert float((conf_banded[name] - conf_whole[name]).abs().max()) < 1e-3

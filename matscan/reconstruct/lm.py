@@ -384,20 +384,20 @@ def solve_rows(
     """:func:`solve` with the K photos read a band of rows at a time by ``read``
     (:data:`PhotoRows`), so they need never be in memory as floats all at once."""
     h, w = diffuse.shape[-2:]
-    theta_start = _theta_of(roughness, normal)
-    correction = torch.zeros_like(theta_start)
+    correction = None  # the coarse level's change to θ, at full resolution
     f = max(1, math.ceil(max(h, w) / cfg.coarse)) if cfg.coarse else 1
     if f > 1 and cfg.iterations > 0:
         # pooled a band at a time; bands start at multiples of f, so each window lies in one
         band = max(f, POOL_VALUES // max(1, w * k) // f * f)
-        yc, vc = [], []
+        yc, vc, tc0 = [], [], []
         for r0 in range(0, h, band):
-            y, v = read(r0, min(h, r0 + band))
+            r1 = min(h, r0 + band)
+            y, v = read(r0, r1)
             yc.append(_pool(y, f))
             vc.append((_pool(v, f) > 0.999).float())
-        yc, vc = torch.cat(yc, dim=-2), torch.cat(vc, dim=-2)
+            tc0.append(_pool(_theta_of(roughness[:, r0:r1], normal[:, r0:r1]), f))
+        yc, vc, tc0 = torch.cat(yc, dim=-2), torch.cat(vc, dim=-2), torch.cat(tc0, dim=-2)
         pc = _pool(points.permute(2, 0, 1), f).permute(1, 2, 0)
-        tc0 = _pool(theta_start, f)
         hc, wc = yc.shape[-2:]
         flat = lambda t: t.reshape(t.shape[0], hc * wc)  # noqa: E731
         prob = _problem(
@@ -414,7 +414,6 @@ def solve_rows(
         theta, _ = levenberg_marquardt(prob, theta, cfg.iterations)
         delta = (theta - flat(tc0)).reshape(3, hc, wc)
         correction = F.interpolate(delta[None], scale_factor=f, mode="bilinear", align_corners=False)[0, :, :h, :w]
-    theta_full = (theta_start + correction).clamp(THETA_LOW.view(3, 1, 1), THETA_HIGH.view(3, 1, 1))
     coarse_done = f > 1 and cfg.iterations > 0
 
     out = {
@@ -435,8 +434,12 @@ def solve_rows(
             px(diffuse),
             px(specular),
         )
-        prob = _problem(*args, px(theta_start), cfg, strength)
-        theta = px(theta_full) if coarse_done else grid_start(prob, px(theta_full))  # small images: no coarse level
+        # θ's start per band (a full-size copy would be 12 bytes a pixel more)
+        theta_start = _theta_of(roughness[:, r0:r1], normal[:, r0:r1]).reshape(3, -1)
+        theta = theta_start if correction is None else (theta_start + px(correction)).clamp(THETA_LOW, THETA_HIGH)
+        prob = _problem(*args, theta_start, cfg, strength)
+        if not coarse_done:  # small images: no coarse level
+            theta = grid_start(prob, theta)
         theta, jtj = levenberg_marquardt(prob, theta, cfg.fine_iterations)
         a, s1, s0 = bases(theta, prob.geo)
         rho, f0, haa, hss = linear_solve(prob, a, s1, s0)

@@ -117,9 +117,8 @@ def predict_maps(nets: MapNets, capture: Capture, tile: int = 512, overlap: int 
         for name, t in pred.items():
             out[name][..., r0 : r0 + th, c0 : c0 + tw] += t * wt
         weight[..., r0 : r0 + th, c0 : c0 + tw] += wt
-    maps = {name: (t / weight)[0] for name, t in out.items()}
+    maps = {name: t.div_(weight)[0] for name, t in out.items()}  # in place: no second copy at full size
     maps["normal"] = normalize_normals(maps["normal"])
-    maps["diffuse"] = maps["diffuse"].clamp(0, 1)
-    maps["specular"] = maps["specular"].clamp(0, 1)
-    maps["roughness"] = maps["roughness"].clamp(0, 1)
+    for name in ("diffuse", "specular", "roughness"):
+        maps[name].clamp_(0, 1)
     return MapSet(**maps)
