@@ -149,7 +149,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
     w, h = rec["size_px"]
     return (
         f"reconstruct: wrote maps of {w}×{h} px ({rec['mm_per_pixel'][0]:.3f} mm/px) from {len(rec['inputs'])} photos "
-        f"to {args.out}; model {rec['model']['name']}, refined {'yes' if rec['refined'] else 'no'}; "
+        f"to {args.out}; model {rec['model']['name']}, refined {'yes' if rec['refined'] else 'no'}"
+        + (
+            f" ({rec['choice']['chosen']}: the best at predicting {len(rec['choice']['left_out'])} photo(s) left out)"
+            if rec.get("choice")
+            else ""
+        )
+        + "; "
         f"re-render RMSE {rec['rerender_rmse']:.4f}"
         + (f" (left-out photos {rec['validation']['rmse_left_out']:.4f})" if "validation" in rec else "")
         + f"; {rec['timings_s']['total_s']:.1f} s"
@@ -214,6 +220,7 @@ def _calibrate(args: argparse.Namespace, out: Path, corners: list[tuple[float, f
 
 def cmd_evaluate(args: argparse.Namespace) -> str:
     from matscan.evaluate import evaluate_to_folder
+    from matscan.materials.artist import ARTIST_NAMES, artist_material
     from matscan.materials.library import read_any
     from matscan.materials.photos import photo_material
     from matscan.materials.procedural import random_material
@@ -231,6 +238,8 @@ def cmd_evaluate(args: argparse.Namespace) -> str:
                 materials.append((f"procedural-{i:03d}-{family}", maps))
         elif spec == "photos":
             materials += [(f"photo-{n}", photo_material(n, args.size)) for n in ("brick", "grass", "gravel")]
+        elif spec == "artist":
+            materials += [(f"artist-{n}", artist_material(n, args.size)) for n in ARTIST_NAMES]
         else:
             from matscan.capture.virtual import resize_maps
 
@@ -448,8 +457,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--refine",
         default="auto",
         choices=["auto", "on", "off"],
-        help="refine by inverse rendering (auto: with 10 or more photos, where it helps the networks' maps "
-        "(docs/results.md), and always without networks)",
+        help="refine by inverse rendering (auto: with the lm solver from 2 photos, choosing between networks, "
+        "networks + solver and solver alone by photos left out with 4 to 9 photos; with adam from 10; always "
+        "without networks; docs/results.md)",
     )
     p.add_argument(
         "--solver",
@@ -498,7 +508,8 @@ def build_parser() -> argparse.ArgumentParser:
         "mapsets",
         nargs="+",
         metavar="MAPSETS",
-        help="map set folders, procedural:N (unseen procedural materials), photos (texture photographs)",
+        help="map set folders, procedural:N (unseen procedural materials), photos (texture photographs), "
+        "artist (artist-style map sets: foil print, leather, embossed coins, lacquer, worn metal)",
     )
     p.add_argument("--out", required=True, help="folder for results.json, results.md and plots")
     p.add_argument("--lights", default="1,2,3,6,10,16,24", help="light subsets (default the paper's Table 4)")

@@ -115,9 +115,10 @@ def subset_table(
 #: start: photo ÷ flat irradiance, flat normal, roughness 0.5, specular 0.04); "nets": the
 #: networks alone; "nets+refine": the networks then refinement (what `matscan reconstruct`
 #: does from 10 photos up); "fit": per-pixel fitting alone (same renderer and optimiser,
-#: from the flat start). Any other weights file is given as "nets:PATH" (or
-#: "nets+refine:PATH"): ablation variants.
-METHODS = ("baseline", "nets", "nets+refine", "fit")
+#: from the flat start); "auto": what `matscan reconstruct` does by default (the networks,
+#: then refinement where ``--refine auto`` chooses it). Any other weights file is given
+#: as "nets:PATH" (or "nets+refine:PATH"): ablation variants.
+METHODS = ("baseline", "nets", "nets+refine", "fit", "auto")
 ENCODINGS = {"srgb8": ("srgb", 8), "linear16": ("linear", 16)}
 
 
@@ -172,10 +173,10 @@ def evaluation_lights(rig: Rig, count: int = 16, seed: int = 12345) -> LightSet:
 
 def _method_nets(method: str, cache: dict) -> tuple[MapNets | None, str]:
     kind, _, path = method.partition(":")
-    refine = "on" if kind == "nets+refine" or kind == "fit" else "off"
+    refine = {"nets+refine": "on", "fit": "on", "auto": "auto"}.get(kind, "off")
     if kind in ("fit", "baseline") and not path:
         return None, refine
-    if kind not in ("nets", "nets+refine"):
+    if kind not in ("nets", "nets+refine", "auto"):
         raise MatscanError(f"methods: {method!r} is not one of {', '.join(METHODS)} or nets:FILE, nets+refine:FILE")
     key = path or "default"
     if key not in cache:
@@ -358,8 +359,9 @@ SUMMARY_COLUMNS = (
 
 
 def source_of(material: str) -> str:
-    """The kind of evaluation material: procedural, photo (texture photographs) or mapset."""
-    return material.split("-", 1)[0] if material.startswith(("procedural-", "photo-")) else "mapset"
+    """The kind of evaluation material: procedural, photo (texture photographs), artist
+    (artist-style map sets, :mod:`matscan.materials.artist`) or mapset."""
+    return material.split("-", 1)[0] if material.startswith(("procedural-", "photo-", "artist-")) else "mapset"
 
 
 def summary_table(rows: list[dict[str, Any]], by: str) -> str:

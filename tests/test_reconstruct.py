@@ -101,7 +101,7 @@ def test_alpha_from_simulated_mesh(tmp_path):
 def test_height_of_a_known_surface():
     import math
 
-    from matscan.materials.noise import normals_from_height
+    from matscan.reconstruct.surface import normals_from_height
     from matscan.reconstruct import height_from_normals
 
     n = 64

@@ -95,17 +95,6 @@ def grid_coords(size: int, count_x: int, count_y: int) -> tuple[Tensor, Tensor, 
     return x.floor().long(), y.floor().long(), x - x.floor(), y - y.floor()
 
 
-def normals_from_height(height_mm: Tensor, mm_per_px: float) -> Tensor:
-    """Unit normals (3, S, S) of a tileable height field (mm), by central differences.
-
-    Tangent frame of design.md: +x right (columns), +y up (rows grow with −y).
-    """
-    dhdx = (torch.roll(height_mm, -1, -1) - torch.roll(height_mm, 1, -1)) / (2 * mm_per_px)
-    dhdy = -(torch.roll(height_mm, -1, -2) - torch.roll(height_mm, 1, -2)) / (2 * mm_per_px)
-    inv = torch.rsqrt(dhdx * dhdx + dhdy * dhdy + 1)
-    return torch.stack([-dhdx * inv, -dhdy * inv, inv])
-
-
 def smoothstep(e0: float, e1: float, x: Tensor) -> Tensor:
     """Hermite step from 0 at e0 to 1 at e1."""
     t = ((x - e0) / (e1 - e0)).clamp(0, 1)

@@ -17,28 +17,37 @@ Needs the ``eval`` extra (scikit-image).
 
 from __future__ import annotations
 
+from types import ModuleType
+
 import torch
 import torch.nn.functional as F
 
 from matscan.color import srgb_to_linear
 from matscan.errors import MatscanError
 from matscan.mapset import MapSet
-from matscan.materials.noise import blur, normals_from_height
+from matscan.materials.noise import blur
+from matscan.reconstruct.surface import normals_from_height
 
 TINTS = {"brick": (1.0, 0.62, 0.48), "grass": (0.55, 1.0, 0.45), "gravel": (1.0, 0.93, 0.85)}
 FIELD_MM = 120.0
 RELIEF_MM = 0.4
 
 
+def skimage_data(what: str) -> ModuleType:
+    """``skimage.data`` (the photos scikit-image ships); a MatscanError saying that ``what``
+    needs it where scikit-image is missing."""
+    try:
+        import skimage.data
+    except ImportError:
+        raise MatscanError(f"{what} need scikit-image: pip install 'matscan[eval]'") from None
+    return skimage.data
+
+
 def photo_material(name: str, size: int = 256) -> MapSet:
     """The map set built from scikit-image's ``name`` texture (see module doc), at ``size``²."""
     if name not in TINTS:
         raise MatscanError(f"photo material: {name!r} is not one of {', '.join(TINTS)}")
-    try:
-        import skimage.data
-    except ImportError:
-        raise MatscanError("photo materials need scikit-image: pip install 'matscan[eval]'") from None
-    img = torch.from_numpy(getattr(skimage.data, name)()).float() / 255
+    img = torch.from_numpy(getattr(skimage_data("photo materials"), name)()).float() / 255
     img = F.interpolate(img[None, None], size=(size, size), mode="area")[0, 0]
     lin = srgb_to_linear(img)
     lo, hi = float(lin.quantile(0.01)), float(lin.quantile(0.99))

@@ -41,10 +41,10 @@ from matscan.materials.noise import (
     cells,
     fractal_noise,
     grid_coords,
-    normals_from_height,
     smoothstep,
     spectral_noise,
 )
+from matscan.reconstruct.surface import normals_from_height
 
 #: Linear F0 of metals (Real-Time Rendering, 4th ed., Table 9.2).
 METALS: dict[str, tuple[float, float, float]] = {

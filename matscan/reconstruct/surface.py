@@ -1,5 +1,5 @@
 """Surface maps beyond the four (paper §4.5): alpha from backlight photos, height
-from normals."""
+from normals, and normals from height (its inverse, which the material generators use)."""
 
 from __future__ import annotations
 
@@ -50,3 +50,14 @@ def height_from_normals(normal: Tensor, mm_per_px: tuple[float, float]) -> Tenso
     hf = (-1j * wj * gj_f - 1j * wi * gi_f) / denom
     hf[0, 0] = 0
     return torch.fft.ifft2(hf).real.float()[None]
+
+
+def normals_from_height(height_mm: Tensor, mm_per_px: float) -> Tensor:
+    """Unit normals (3, S, S) of a tileable height field (mm), by central differences.
+
+    Tangent frame of design.md: +x right (columns), +y up (rows grow with −y).
+    """
+    dhdx = (torch.roll(height_mm, -1, -1) - torch.roll(height_mm, 1, -1)) / (2 * mm_per_px)
+    dhdy = -(torch.roll(height_mm, -1, -2) - torch.roll(height_mm, 1, -2)) / (2 * mm_per_px)
+    inv = torch.rsqrt(dhdx * dhdx + dhdy * dhdy + 1)
+    return torch.stack([-dhdx * inv, -dhdy * inv, inv])
