@@ -101,8 +101,8 @@ def test_alpha_from_simulated_mesh(tmp_path):
 def test_height_of_a_known_surface():
     import math
 
-    from matscan.reconstruct.surface import normals_from_height
     from matscan.reconstruct import height_from_normals
+    from matscan.reconstruct.surface import normals_from_height
 
     n = 64
     i = torch.arange(n).float()[:, None]
@@ -236,6 +236,39 @@ def test_auto_refines_from_the_solvers_photo_count_and_always_without_networks(t
     assert "refine_s" in reconstruct_capture(ten, adam, nets).timings
     for cfg in (lm, adam):
         assert "refine_s" in reconstruct_capture(one, cfg, None).timings
+
+
+def test_auto_chooses_by_held_out_photos_from_4_to_9_photos(tmp_path):
+    from matscan.nets import MapNets, preset
+    from matscan.reconstruct.job import choose_by_evidence
+
+    nets = MapNets(24, preset("tiny"))  # untrained: its maps predict no photo
+    six, _ = _capture(tmp_path / "six", size=24, lights=[0, 4, 8, 12, 16, 20])
+    res = reconstruct_capture(six, ReconstructConfig(), nets)
+    choice = res.choice
+    assert choice["left_out"] == [six.files[2]]  # a sixth of 6 photos: one, from the middle
+    scores = choice["rmse_left_out"]
+    assert set(scores) == {"networks", "networks+solver", "solver"}
+    assert choice["chosen"] == min(scores, key=scores.get)
+    # untrained networks' maps predict an unseen photo worse than a fit to the other five does
+    assert scores["networks"] > 2 * scores["solver"]
+    # the candidate's score is the re-rendering error of its maps from the five on the sixth
+    kept = six.select([0, 1, 3, 4, 5])
+    alone = reconstruct_capture(kept, ReconstructConfig(refine="on"), None)
+    assert abs(rerender_error(alone.maps, six, [2]) - scores["solver"]) < 1e-6
+    # and the maps returned are the chosen candidate's, from all six photos
+    use_nets = choice["chosen"] != "solver"
+    direct = reconstruct_capture(
+        six, ReconstructConfig(refine="off" if choice["chosen"] == "networks" else "on"), nets if use_nets else None
+    )
+    assert torch.equal(direct.maps.diffuse, res.maps.diffuse)
+    # below 4 photos too few are left to judge by; from 10 the rule holds; adam keeps its rule
+    three, _ = _capture(tmp_path / "three", size=24, lights=[0, 8, 16])
+    ten, _ = _capture(tmp_path / "ten", size=24, lights=list(range(0, 20, 2)))
+    assert reconstruct_capture(three, ReconstructConfig(), nets).choice is None
+    assert reconstruct_capture(ten, ReconstructConfig(), nets).choice is None
+    assert reconstruct_capture(six, ReconstructConfig(solver="adam", refine_steps=2), nets).choice is None
+    assert choose_by_evidence(ten, ReconstructConfig(), nets)[1]["left_out"] == [ten.files[2], ten.files[7]]
 
 
 def test_the_record_says_how_trained_each_network_is(tmp_path):

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -105,6 +105,7 @@ class Result:
     refine_history: list[float] = field(default_factory=list)
     refined: bool = False
     confidence: dict[str, Tensor] = field(default_factory=dict)
+    choice: dict[str, Any] | None = None  # what ``--refine auto`` compared, when it compared
 
 
 #: Prior strength of the ``lm`` solver when it starts from flat maps (no networks):
@@ -159,10 +160,59 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
     return warnings
 
 
+#: ``--refine auto`` (with the lm solver) chooses by evidence (:func:`choose_by_evidence`) for captures with at
+#: least EVIDENCE_PHOTOS[0] and fewer than EVIDENCE_PHOTOS[1] photos, where no one method
+#: wins everywhere; below, too few photos are left to judge by; from the upper bound the
+#: networks + solver win on every material measured (docs/results.md), and the
+#: comparison would cost more than the whole reconstruction.
+EVIDENCE_PHOTOS = (4, 10)
+
+#: The candidates ``--refine auto`` compares: (networks used, refine).
+CANDIDATES = {"networks": (True, "off"), "networks+solver": (True, "on"), "solver": (False, "on")}
+
+
+def held_out_positions(n: int, count: int) -> list[int]:
+    """``count`` positions spread evenly over ``n`` photos."""
+    return sorted({round((i + 0.5) * n / count - 0.5) for i in range(count)})
+
+
+def choose_by_evidence(capture: Capture, cfg: ReconstructConfig, nets: MapNets) -> tuple[str, dict[str, Any]]:
+    """Which candidate (:data:`CANDIDATES`) predicts photos it has not seen best: each
+    reconstructs from the capture without a sixth of its photos (at least one, spread
+    evenly) and is scored by the RMSE of re-rendering those. Returns the winner and the
+    record of the comparison (photos left out, each candidate's RMSE)."""
+    n = len(capture.files)
+    left = held_out_positions(n, max(1, round(n / 6)))
+    kept = capture.select([i for i in range(n) if i not in left])
+    scores = {}
+    for name, (use_nets, refine) in CANDIDATES.items():
+        res = reconstruct_capture(kept, replace(cfg, refine=refine), nets if use_nets else None)
+        scores[name] = rerender_error(res.maps, capture, left, res.intensity_scale)
+    best = min(scores, key=lambda k: scores[k])
+    return best, {"chosen": best, "left_out": [capture.files[i] for i in left], "rmse_left_out": scores}
+
+
 def reconstruct_capture(
     capture: Capture, cfg: ReconstructConfig = ReconstructConfig(), nets: MapNets | None = None, progress: bool = False
 ) -> Result:
     """Maps from a loaded capture (no files written)."""
+    choice = None
+    n = len(capture.files)
+    if (
+        cfg.refine == "auto"
+        and cfg.solver == "lm"
+        and nets is not None
+        and not capture.rig.per_image_geometry
+        and EVIDENCE_PHOTOS[0] <= n < EVIDENCE_PHOTOS[1]
+    ):
+        t0 = time.perf_counter()
+        chosen, choice = choose_by_evidence(capture, cfg, nets)
+        seconds = time.perf_counter() - t0
+        use_nets, refine = CANDIDATES[chosen]
+        result = reconstruct_capture(capture, replace(cfg, refine=refine), nets if use_nets else None, progress)
+        result.choice = choice
+        result.timings["choice_s"] = seconds
+        return result
     timings: dict[str, float] = {}
     warnings = check_capture(capture, cfg)
     t0 = time.perf_counter()
@@ -240,7 +290,7 @@ def leave_out_validation(capture: Capture, count: int, cfg: ReconstructConfig, n
     n = len(capture.files)
     if not 1 <= count <= n - 1:
         raise MatscanError(f"--validate: {count} must be between 1 and {n - 1} (the capture has {n} photos)")
-    left = sorted({round((i + 0.5) * n / count - 0.5) for i in range(count)})
+    left = held_out_positions(n, count)
     kept = [i for i in range(n) if i not in left]
     res = reconstruct_capture(subset_capture(capture, kept), cfg, nets)
     return {
@@ -288,8 +338,11 @@ def reconstruct(
             model_name, networks = os.path.relpath(file, claim.path), training_record(model_meta)
         validation = leave_out_validation(capture, cfg.validate, cfg, nets) if cfg.validate else None
         res = reconstruct_capture(capture, cfg, nets, progress)
-        positions = list(range(len(capture.files)))
-        error = rerender_error(res.maps, capture, positions, res.intensity_scale)
+        from matscan.report.html import per_light_rows, write_report
+
+        # the report's per-photo re-renderings give the overall error too: one rendering pass
+        light_rows = per_light_rows(capture, res.maps, res.intensity_scale)
+        error = light_rows[1]
         record = {
             "format": "matscan-reconstruction/1",
             "matscan_version": __version__,
@@ -303,6 +356,7 @@ def reconstruct(
             "config": asdict(cfg),
             "refined": res.refined,
             "solver": cfg.solver if res.refined else None,
+            "choice": res.choice,
             "intensity_scale": res.intensity_scale,
             "rerender_rmse": error,
             "warnings": res.warnings,
@@ -317,10 +371,10 @@ def reconstruct(
             from matscan.export import export_all
 
             record["exports"] = export_all(tmp, res.maps, capture.field_mm, cfg.exr, cfg.directx_normals)
-            from matscan.report.html import write_report
-
             record["confidence"] = write_confidence(tmp, res.confidence)
-            write_report(tmp / "report.html", capture, res.maps, record, res.intensity_scale, res.confidence)
+            write_report(
+                tmp / "report.html", capture, res.maps, record, res.intensity_scale, res.confidence, light_rows
+            )
             record["timings_s"]["total_s"] = round(time.perf_counter() - t_all, 3)
             (tmp / RECORD).write_text(dumps(record, RECORD), encoding="utf-8")
     return record

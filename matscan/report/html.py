@@ -121,12 +121,14 @@ def write_report(
     record: dict[str, Any],
     scale: float = 1.0,
     confidence: dict[str, Tensor] | None = None,
+    light_rows: tuple[list[dict[str, Any]], float] | None = None,
 ) -> None:
     """Write ``report.html`` (see module doc); ``confidence``: a (1, H, W) map in [0, 1]
-    per map, shown beside the maps (white: the photos determined it; black: the prior)."""
-    rows, overall = per_light_rows(capture, maps, scale)
+    per map, shown beside the maps (white: the photos determined it; black: the prior);
+    ``light_rows``: :func:`per_light_rows` when the caller has made them already."""
+    rows, overall = light_rows if light_rows is not None else per_light_rows(capture, maps, scale)
     e = html.escape
-    light_rows = "\n".join(
+    table = "\n".join(
         f"<tr><td>{e(r['file'])}</td><td>{'' if r['light'] is None else r['light']}</td>"
         f"<td><img src='{r['photo']}' alt='photo'></td><td><img src='{r['render']}' alt='re-rendering'></td>"
         f"<td><img src='{r['error']}' alt='error'></td><td>{r['rmse']:.4f}</td></tr>"
@@ -178,7 +180,7 @@ def write_report(
         .replace("{{NUMBERS}}", numbers_html)
         .replace("{{WARNINGS}}", warnings)
         .replace("{{MAPS}}", "\n".join(map_cells))
-        .replace("{{LIGHTS}}", light_rows)
+        .replace("{{LIGHTS}}", table)
         .replace("{{VIEWER_CONFIG}}", dumps(viewer_cfg, "report viewer", indent=None))
         .replace("{{VIEWER_JS}}", (HERE / "viewer.js").read_text(encoding="utf-8"))
     )
