@@ -458,7 +458,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         choices=["auto", "on", "off"],
         help="refine by inverse rendering (auto: with the lm solver from 2 photos, choosing between networks, "
-        "networks + solver and solver alone by photos left out with 4 to 9 photos; with adam from 10; always "
+        "networks + solver and solver alone by photos left out with 2 to 9 photos; with adam from 10; always "
         "without networks; docs/results.md)",
     )
     p.add_argument(

@@ -230,45 +230,47 @@ def test_auto_refines_from_the_solvers_photo_count_and_always_without_networks(t
     six, _ = _capture(tmp_path / "a", size=16, lights=[0, 4, 8, 12, 16, 20])
     ten, _ = _capture(tmp_path / "b", size=16, lights=[4, 6, 8, 10, 12, 14, 16, 18, 20, 22])
     lm, adam = ReconstructConfig(), ReconstructConfig(solver="adam", refine_steps=2)
-    assert "refine_s" not in reconstruct_capture(one, lm, nets).timings  # lm: from 2 photos
-    assert "refine_s" in reconstruct_capture(two, lm, nets).timings
+    assert "refine_s" in reconstruct_capture(one, lm, nets).timings  # lm: one photo, the solver alone
+    assert "refine_s" in reconstruct_capture(two, lm, nets).timings  # 2-3: by evidence, both candidates refine
+    assert "refine_s" in reconstruct_capture(six, lm, nets).timings
     assert "refine_s" not in reconstruct_capture(six, adam, nets).timings  # adam: from 10
     assert "refine_s" in reconstruct_capture(ten, adam, nets).timings
     for cfg in (lm, adam):
         assert "refine_s" in reconstruct_capture(one, cfg, None).timings
 
 
-def test_auto_chooses_by_held_out_photos_from_4_to_9_photos(tmp_path):
+def test_auto_chooses_by_held_out_photos_with_2_or_3_photos(tmp_path):
     from matscan.nets import MapNets, preset
     from matscan.reconstruct.job import choose_by_evidence
 
     nets = MapNets(24, preset("tiny"))  # untrained: its maps predict no photo
-    six, _ = _capture(tmp_path / "six", size=24, lights=[0, 4, 8, 12, 16, 20])
-    res = reconstruct_capture(six, ReconstructConfig(), nets)
-    choice = res.choice
-    assert choice["left_out"] == [six.files[2]]  # a sixth of 6 photos: one, from the middle
-    scores = choice["rmse_left_out"]
-    assert set(scores) == {"networks", "networks+solver", "solver"}
-    assert choice["chosen"] == min(scores, key=scores.get)
-    # untrained networks' maps predict an unseen photo worse than a fit to the other five does
-    assert scores["networks"] > 2 * scores["solver"]
-    # the candidate's score is the re-rendering error of its maps from the five on the sixth
-    kept = six.select([0, 1, 3, 4, 5])
-    alone = reconstruct_capture(kept, ReconstructConfig(refine="on"), None)
-    assert abs(rerender_error(alone.maps, six, [2]) - scores["solver"]) < 1e-6
-    # and the maps returned are the chosen candidate's, from all six photos
-    use_nets = choice["chosen"] != "solver"
-    direct = reconstruct_capture(
-        six, ReconstructConfig(refine="off" if choice["chosen"] == "networks" else "on"), nets if use_nets else None
-    )
-    assert torch.equal(direct.maps.diffuse, res.maps.diffuse)
-    # below 4 photos too few are left to judge by; from 10 the rule holds; adam keeps its rule
     three, _ = _capture(tmp_path / "three", size=24, lights=[0, 8, 16])
-    ten, _ = _capture(tmp_path / "ten", size=24, lights=list(range(0, 20, 2)))
-    assert reconstruct_capture(three, ReconstructConfig(), nets).choice is None
-    assert reconstruct_capture(ten, ReconstructConfig(), nets).choice is None
-    assert reconstruct_capture(six, ReconstructConfig(solver="adam", refine_steps=2), nets).choice is None
-    assert choose_by_evidence(ten, ReconstructConfig(), nets)[1]["left_out"] == [ten.files[2], ten.files[7]]
+    res = reconstruct_capture(three, ReconstructConfig(), nets)
+    choice = res.choice
+    assert choice["left_out"] == [three.files[1]] and choice["folds"] == 1  # one of three, the middle
+    scores = choice["rmse_left_out"]
+    assert set(scores) == {"networks+solver", "solver"}
+    assert choice["chosen"] == min(scores, key=scores.get)
+    # a candidate's score is the re-rendering error, on the photo left out, of its maps from the others
+    alone = reconstruct_capture(three.select([0, 2]), ReconstructConfig(refine="on"), None)
+    assert abs(rerender_error(alone.maps, three, [1]) - scores["solver"]) < 1e-6
+    # and the maps returned are the chosen candidate's, from all three photos
+    direct = reconstruct_capture(three, ReconstructConfig(refine="on"), nets if choice["chosen"] != "solver" else None)
+    assert torch.equal(direct.maps.diffuse, res.maps.diffuse)
+    # of two photos each is predicted from the other
+    two, _ = _capture(tmp_path / "two", size=24, lights=[0, 16])
+    pair = choose_by_evidence(two, ReconstructConfig(), nets)[1]
+    assert pair["folds"] == 2 and pair["left_out"] == list(two.files)
+    # one photo: the rule (the solver alone); from 4 photos the networks + solver, no comparison;
+    # adam keeps its rule
+    one, _ = _capture(tmp_path / "one", size=24, lights=[0])
+    four, _ = _capture(tmp_path / "four", size=24, lights=[0, 6, 12, 18])
+    single = reconstruct_capture(one, ReconstructConfig(), nets)
+    assert single.choice["chosen"] == "solver" and single.refined
+    torch.testing.assert_close(single.maps.diffuse, reconstruct_capture(one, ReconstructConfig(), None).maps.diffuse)
+    assert reconstruct_capture(four, ReconstructConfig(), nets).choice is None
+    assert reconstruct_capture(three, ReconstructConfig(solver="adam", refine_steps=2), nets).choice is None
+    assert choose_by_evidence(four, ReconstructConfig(), nets)[1]["left_out"] == [four.files[2]]
 
 
 def test_the_record_says_how_trained_each_network_is(tmp_path):

@@ -160,15 +160,25 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
     return warnings
 
 
-#: ``--refine auto`` (with the lm solver) chooses by evidence (:func:`choose_by_evidence`) for captures with at
-#: least EVIDENCE_PHOTOS[0] and fewer than EVIDENCE_PHOTOS[1] photos, where no one method
-#: wins everywhere; below, too few photos are left to judge by; from the upper bound the
-#: networks + solver win on every material measured (docs/results.md), and the
-#: comparison would cost more than the whole reconstruction.
-EVIDENCE_PHOTOS = (4, 10)
+#: ``--refine auto`` (with the lm solver) chooses by evidence (:func:`choose_by_evidence`)
+#: for captures with at least EVIDENCE_PHOTOS[0] and fewer than EVIDENCE_PHOTOS[1] photos:
+#: there the networks + solver win on some materials and the solver alone on others (the
+#: networks mislead on dark glossy ones), and the photos left out tell which (docs/results.md:
+#: with 2 and 3 photos the choice beat every single method). From 4 photos the networks +
+#: solver are used: with a single photo left out of 6 the choice was noisier than the
+#: differences it had to find. One photo leaves none to judge by: see ONE_PHOTO.
+EVIDENCE_PHOTOS = (2, 4)
 
 #: The candidates ``--refine auto`` compares: (networks used, refine).
-CANDIDATES = {"networks": (True, "off"), "networks+solver": (True, "on"), "solver": (False, "on")}
+CANDIDATES = {"networks+solver": (True, "on"), "solver": (False, "on")}
+
+#: What ``--refine auto`` does with one photo (lm solver): measured in docs/results.md
+#: (256², 8-bit sRGB, novel-light RMSE), the solver from a flat start 0.0653 against the
+#: networks' 0.0770 on 8 map sets unlike the training set, and 0.0503 against 0.0493 on 8
+#: procedural ones: the networks' guesses from one photo cost more where they are wrong than
+#: they gain where they are right.
+ONE_PHOTO = "solver"
+ALL_CANDIDATES = {"networks": (True, "off"), **CANDIDATES}
 
 
 def held_out_positions(n: int, count: int) -> list[int]:
@@ -176,39 +186,44 @@ def held_out_positions(n: int, count: int) -> list[int]:
     return sorted({round((i + 0.5) * n / count - 0.5) for i in range(count)})
 
 
+def evidence_folds(n: int) -> list[list[int]]:
+    """The photos each candidate must predict without seeing them: a sixth of them (at
+    least one, spread evenly); of two photos, each from the other."""
+    return [[0], [1]] if n == 2 else [held_out_positions(n, max(1, round(n / 6)))]
+
+
 def choose_by_evidence(capture: Capture, cfg: ReconstructConfig, nets: MapNets) -> tuple[str, dict[str, Any]]:
     """Which candidate (:data:`CANDIDATES`) predicts photos it has not seen best: each
-    reconstructs from the capture without a sixth of its photos (at least one, spread
-    evenly) and is scored by the RMSE of re-rendering those. Returns the winner and the
-    record of the comparison (photos left out, each candidate's RMSE)."""
+    reconstructs from the capture without the photos of a fold (:func:`evidence_folds`)
+    and is scored by the RMSE of re-rendering those, averaged over folds. Returns the
+    winner and the record of the comparison (photos left out, each candidate's RMSE)."""
     n = len(capture.files)
-    left = held_out_positions(n, max(1, round(n / 6)))
-    kept = capture.select([i for i in range(n) if i not in left])
-    scores = {}
-    for name, (use_nets, refine) in CANDIDATES.items():
-        res = reconstruct_capture(kept, replace(cfg, refine=refine), nets if use_nets else None)
-        scores[name] = rerender_error(res.maps, capture, left, res.intensity_scale)
+    folds = evidence_folds(n)
+    scores = dict.fromkeys(CANDIDATES, 0.0)
+    for left in folds:
+        kept = capture.select([i for i in range(n) if i not in left])
+        for name, (use_nets, refine) in CANDIDATES.items():
+            res = reconstruct_capture(kept, replace(cfg, refine=refine), nets if use_nets else None)
+            scores[name] += rerender_error(res.maps, capture, left, res.intensity_scale) / len(folds)
     best = min(scores, key=lambda k: scores[k])
-    return best, {"chosen": best, "left_out": [capture.files[i] for i in left], "rmse_left_out": scores}
+    left_out = [capture.files[i] for fold in folds for i in fold]
+    return best, {"chosen": best, "left_out": left_out, "folds": len(folds), "rmse_left_out": scores}
 
 
 def reconstruct_capture(
     capture: Capture, cfg: ReconstructConfig = ReconstructConfig(), nets: MapNets | None = None, progress: bool = False
 ) -> Result:
     """Maps from a loaded capture (no files written)."""
-    choice = None
     n = len(capture.files)
-    if (
-        cfg.refine == "auto"
-        and cfg.solver == "lm"
-        and nets is not None
-        and not capture.rig.per_image_geometry
-        and EVIDENCE_PHOTOS[0] <= n < EVIDENCE_PHOTOS[1]
-    ):
+    auto = cfg.refine == "auto" and cfg.solver == "lm" and nets is not None and not capture.rig.per_image_geometry
+    if auto and n < EVIDENCE_PHOTOS[1]:
         t0 = time.perf_counter()
-        chosen, choice = choose_by_evidence(capture, cfg, nets)
+        if n >= EVIDENCE_PHOTOS[0]:
+            chosen, choice = choose_by_evidence(capture, cfg, nets)
+        else:
+            chosen, choice = ONE_PHOTO, {"chosen": ONE_PHOTO, "rule": "one photo (docs/results.md)"}
         seconds = time.perf_counter() - t0
-        use_nets, refine = CANDIDATES[chosen]
+        use_nets, refine = ALL_CANDIDATES[chosen]
         result = reconstruct_capture(capture, replace(cfg, refine=refine), nets if use_nets else None, progress)
         result.choice = choice
         result.timings["choice_s"] = seconds
