@@ -14,7 +14,8 @@ A capture that names it is corrected on reading for reconstruction
 light's scale and flat field. Every field is checked there (errors name the file
 and the field); plausible-but-wrong calibrations become warnings in the capture's
 ``meta["warnings"]``. :func:`check_chart` and :func:`check_scales` give the
-warnings about a chart photo and about computed scales to ``matscan calibrate``.
+warnings about a chart photo and about computed scales; :func:`calibrate` is
+``matscan calibrate``: photos in, ``calibration.json`` out.
 
 The ColorChecker is located by the user (the chart's four outer corners in pixel
 coordinates, or the whole photo when the chart fills it): an automatic detector
@@ -26,7 +27,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -284,6 +285,113 @@ def write_calibration(
 
     write_text(path, dumps(doc, str(path)))
     return doc
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What :func:`calibrate` wrote and measured.
+
+    Attributes:
+        path: the ``calibration.json`` written (flat fields, if any, lie beside it).
+        colour_matrix: (3, 3) linear camera RGB → linear sRGB, from the chart photo; else None.
+        chart_error: mean absolute error of the chart's 24 patches after the matrix
+            (linear sRGB, [0, 1] scale); else None.
+        light_scales: per rig light (its index as text): photo = scale × model; empty without a grey card.
+        flat_fields: per rig light, (1, H, W) of mean 1; empty unless asked for.
+        warnings: one line each, saying what to check (:func:`check_chart`, :func:`check_scales`).
+    """
+
+    path: Path
+    colour_matrix: Tensor | None
+    chart_error: float | None
+    light_scales: dict[str, float]
+    flat_fields: dict[str, Tensor]
+    warnings: tuple[str, ...]
+
+
+CHART_ENCODINGS = ("srgb", "linear")
+
+
+def calibrate(
+    out: str | Path,
+    grey: str | Path | None = None,
+    chart: str | Path | None = None,
+    corners: Sequence[Sequence[float]] | None = None,
+    chart_encoding: str = "srgb",
+    flat_fields: bool = False,
+    overwrite: bool = False,
+) -> Calibration:
+    """Write ``calibration.json`` from a ColorChecker photo and/or a grey-card capture
+    (``matscan calibrate``).
+
+    Args:
+        out: the calibration file to write (put it in the capture folder and name it
+            in ``capture.json``); checked and locked before any work
+            (:func:`matscan.outputs.claim_output`), never one of the inputs.
+        grey: capture folder of an 18 % grey card under each light (``"@sample"``
+            names the built-in sample capture): per-light scales (:func:`light_scales`).
+        chart: photo of a ColorChecker Classic: the colour matrix (:func:`colour_matrix`).
+        corners: the chart's outer corners in pixels (x, y), top-left, top-right,
+            bottom-right, bottom-left; the whole photo by default (:func:`sample_patches`).
+        chart_encoding: ``"srgb"`` or ``"linear"``, the transfer function of an integer
+            chart photo (a float photo is linear).
+        flat_fields: also write per-light flat fields (``flat_NN.exr`` beside ``out``).
+        overwrite: replace an existing calibration file (and its flat fields).
+
+    Returns:
+        :class:`Calibration`: what was written and measured, with warnings.
+
+    Raises:
+        MatscanError: neither ``grey`` nor ``chart`` given, an existing ``out`` without
+            ``overwrite``, unreadable inputs, corners off the photo, a light that does
+            not light the card or saturates it everywhere.
+    """
+    from matscan.outputs import capture_inputs, check_destination, claim_output
+    from matscan.samples import capture_folder
+
+    if grey is None and chart is None:
+        raise MatscanError("calibrate: give grey (a capture of a grey card under each light) and/or chart (a photo)")
+    if chart_encoding not in CHART_ENCODINGS:
+        raise MatscanError(f"chart_encoding: {chart_encoding!r} is not one of {', '.join(CHART_ENCODINGS)}")
+    grey = capture_folder(grey) if grey is not None else None
+    inputs = ([Path(chart)] if chart is not None else []) + (capture_inputs(grey) if grey is not None else [])
+    with claim_output(out, "calibrate", inputs, kind="file", overwrite=overwrite) as claim:
+        if flat_fields and grey is not None:  # the flat-field files beside it are outputs too
+            for flat in sorted(claim.path.parent.glob("flat_*.exr")):
+                check_destination(flat, inputs, "file", overwrite)
+        return _calibrate(claim.path, grey, chart, corners, chart_encoding, flat_fields)
+
+
+def _calibrate(
+    out: Path,
+    grey: Path | None,
+    chart: str | Path | None,
+    corners: Sequence[Sequence[float]] | None,
+    chart_encoding: str,
+    flat_fields: bool,
+) -> Calibration:
+    """:func:`calibrate` once its output is claimed: measure, then write ``out``."""
+    from matscan.capture import load_capture
+    from matscan.imagefile import read_image
+
+    matrix = residual = None
+    scales: dict[str, float] = {}
+    flats: dict[str, Tensor] = {}
+    warnings: list[str] = []
+    if chart is not None:
+        img = read_image(chart)
+        photo = torch.from_numpy(img.pixels[:, :, :3]).permute(2, 0, 1).float()
+        if img.kind == "int" and chart_encoding == "srgb":
+            photo = srgb_to_linear(photo)
+        measured = sample_patches(photo, corners)
+        warnings += check_chart(measured)
+        matrix = colour_matrix(measured, colorchecker_linear())
+        residual = float((measured @ matrix.T - colorchecker_linear()).abs().mean())
+    if grey is not None:
+        scales, flats = light_scales(load_capture(grey), flat_fields=flat_fields)
+        warnings += check_scales(scales, str(out))
+    write_calibration(out, matrix, scales, flats)
+    return Calibration(out, matrix, residual, scales, flats, tuple(warnings))
 
 
 _CALIBRATION_KEYS = {

@@ -16,20 +16,19 @@ from pathlib import Path
 from matscan import __version__
 from matscan.errors import MatscanError
 
-SAMPLE_PREFIX = "@"
-
 
 def _maps_arg(text: str) -> Path:
     """A map set folder, or ``@name`` for a built-in sample map set."""
-    from matscan.samples import sample_maps_path
+    from matscan.samples import maps_folder
 
-    return sample_maps_path(text[1:]) if text.startswith(SAMPLE_PREFIX) else Path(text)
+    return maps_folder(text)
 
 
 def _capture_arg(text: str) -> Path:
-    from matscan.samples import sample_capture_path
+    """A capture folder, or ``@name`` for a built-in sample capture."""
+    from matscan.samples import capture_folder
 
-    return sample_capture_path(text[1:]) if text.startswith(SAMPLE_PREFIX) else Path(text)
+    return capture_folder(text)
 
 
 def _vector(text: str, n: int, name: str) -> tuple[float, ...]:
@@ -163,7 +162,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> str:
-    from matscan.outputs import capture_inputs, check_destination, claim_output
+    from matscan.calibrate import calibrate
 
     if not args.grey and not args.chart:
         raise MatscanError("calibrate: give --grey CAPTURE (grey card under each light) and/or --chart PHOTO")
@@ -171,50 +170,23 @@ def cmd_calibrate(args: argparse.Namespace) -> str:
     if args.corners:
         v = _vector(args.corners, 8, "--corners")
         corners = [(v[0], v[1]), (v[2], v[3]), (v[4], v[5]), (v[6], v[7])]
-    inputs = ([Path(args.chart)] if args.chart else []) + (capture_inputs(args.grey) if args.grey else [])
-    with claim_output(args.out, "calibrate", inputs, kind="file", overwrite=args.overwrite) as claim:
-        if args.flat_fields and args.grey:  # the flat-field files beside it are outputs too
-            for flat in sorted(claim.path.parent.glob("flat_*.exr")):
-                check_destination(flat, inputs, "file", args.overwrite)
-        return _calibrate(args, claim.path, corners)
-
-
-def _calibrate(args: argparse.Namespace, out: Path, corners: list[tuple[float, float]] | None) -> str:
-    import torch
-
-    from matscan.calibrate import (
-        check_chart,
-        check_scales,
-        colorchecker_linear,
-        colour_matrix,
-        light_scales,
-        sample_patches,
-        write_calibration,
+    cal = calibrate(
+        args.out,
+        grey=args.grey or None,
+        chart=args.chart or None,
+        corners=corners,
+        chart_encoding=args.chart_encoding,
+        flat_fields=args.flat_fields,
+        overwrite=args.overwrite,
     )
-    from matscan.capture import load_capture
-    from matscan.color import srgb_to_linear
-    from matscan.imagefile import read_image
-
-    matrix = scales = flats = None
-    parts: list[str] = []
-    warnings: list[str] = []
-    if args.chart:
-        img = read_image(args.chart)
-        photo = torch.from_numpy(img.pixels[:, :, :3]).permute(2, 0, 1).float()
-        if img.kind == "int" and args.chart_encoding == "srgb":
-            photo = srgb_to_linear(photo)
-        measured = sample_patches(photo, corners)
-        warnings += check_chart(measured)
-        matrix = colour_matrix(measured, colorchecker_linear())
-        residual = float((measured @ matrix.T - colorchecker_linear()).abs().mean())
-        parts.append(f"colour matrix (mean patch error {residual:.4f})")
-    if args.grey:
-        scales, flats = light_scales(load_capture(args.grey), flat_fields=args.flat_fields)
-        warnings += check_scales(scales, str(out))
-        parts.append(f"{len(scales)} light scales ({min(scales.values()):.3f} to {max(scales.values()):.3f})")
-    write_calibration(out, matrix, scales, flats)
-    for warning in warnings:
+    for warning in cal.warnings:
         print(f"matscan: warning: {warning}", file=sys.stderr)
+    parts = []
+    if cal.colour_matrix is not None:
+        parts.append(f"colour matrix (mean patch error {cal.chart_error:.4f})")
+    if args.grey:
+        scales = cal.light_scales
+        parts.append(f"{len(scales)} light scales ({min(scales.values()):.3f} to {max(scales.values()):.3f})")
     return f"calibrate: wrote {args.out}: " + ", ".join(parts)
 
 
@@ -287,18 +259,13 @@ def _render(args: argparse.Namespace, maps_path: Path, pos: tuple[float, ...], o
     from matscan.color import linear_to_srgb
     from matscan.imagefile import write_image
     from matscan.mapset import read_mapset
-    from matscan.render import render, surface_points
+    from matscan.render import render_maps
     from matscan.rig import LightSet, resolve_rig
 
     rig = resolve_rig(args.rig)
     maps = read_mapset(maps_path)
     lights = LightSet.points([pos], rig.camera.position_mm, rig.reference_distance_mm, args.intensity, args.exponent)
-    points = surface_points(rig.field_mm, maps.size)
-    img = render(maps.diffuse, maps.specular, maps.roughness, maps.normal, lights, points)[0]
-    if maps.emissive is not None:
-        img = img + maps.emissive
-    if maps.alpha is not None:
-        img = img * maps.alpha
+    img = render_maps(maps, lights, rig.field_mm)[0]
     if out.suffix.lower() == ".exr":
         write_image(out, img.permute(1, 2, 0).numpy(), bits=32)
     else:

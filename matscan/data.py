@@ -49,7 +49,7 @@ from matscan.capture.virtual import CameraModel, apply_camera
 from matscan.mapset import MapSet, normalize_normals
 from matscan.materials.noise import smoothstep, spectral_noise
 from matscan.materials.procedural import check_prior, random_material
-from matscan.render import render, surface_points
+from matscan.render import render, render_maps, surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
 
 #: The stage under the sample, seen through holes: dark, rough, flat.
@@ -309,18 +309,7 @@ def synthesize(
             folder = tmp / f"{i:03d}_{fam}"
             write_mapset(folder / "maps", maps)
             simulate(maps, the_rig, folder / "capture", lights=indices, camera=CameraModel(read_noise=0.002), seed=i)
-            photo = render(
-                maps.diffuse,
-                maps.specular,
-                maps.roughness,
-                maps.normal,
-                the_rig.light_set([show]),
-                surface_points(the_rig.field_mm, maps.size),
-            )[0]
-            if maps.emissive is not None:
-                photo = photo + maps.emissive
-            if maps.alpha is not None:
-                photo = photo * maps.alpha
+            photo = render_maps(maps, the_rig.light_set([show]), the_rig.field_mm)[0]
             tiles.append((f"{i:03d} {fam}", to_display(photo)))
             tiles.append(("normal", to_display(maps.normal, "normal")))
         save_sheet(tmp / "contact_sheet.png", contact_sheet(tiles, columns=8, tile_size=128))

@@ -50,6 +50,7 @@ from matscan.jsonfile import (
     short_repr,
 )
 from matscan.outputs import claim_output
+from matscan.samples import maps_folder
 
 MAPSET_FORMAT = "matscan-maps/1"
 REQUIRED = ("diffuse", "specular", "roughness", "normal")
@@ -252,8 +253,9 @@ def _read_meta(folder: Path) -> dict[str, Any]:
 
 
 def read_mapset(folder: str | Path) -> MapSet:
-    """Read a map set folder; errors name the file and the problem."""
-    folder = Path(folder)
+    """Read a map set folder (``"@sample"``: the built-in sample's maps); errors name
+    the file and the problem."""
+    folder = maps_folder(folder)
     if not folder.is_dir():
         raise input_error(folder, "no such map set folder")
     meta = _read_meta(folder)
@@ -296,8 +298,14 @@ def write_mapset(
     return Path(folder)
 
 
-def write_maps(folder: Path, maps: MapSet, file_format: str = "png", extra_meta: dict[str, Any] | None = None) -> None:
-    """Write the map files and ``mapset.json`` into an existing folder (each file atomically)."""
+def write_maps(
+    folder: str | Path, maps: MapSet, file_format: str = "png", extra_meta: dict[str, Any] | None = None
+) -> None:
+    """Write the map files and ``mapset.json`` into an existing folder (each file atomically),
+    replacing files of the same names. :func:`write_mapset` writes a new folder whole."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise input_error(folder, "no such folder (write_maps writes into an existing one; write_mapset makes one)")
     if file_format not in ("png", "exr"):
         raise MatscanError(f"format: {file_format!r} is not one of png, exr")
     maps.check()

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -33,6 +34,9 @@ from torch import Tensor
 from matscan.brdf import fresnel_schlick, ggx_alpha, ggx_distribution, smith_g
 from matscan.errors import MatscanError
 from matscan.rig import LightSet, Rig
+
+if TYPE_CHECKING:
+    from matscan.mapset import MapSet
 
 #: Light-pixels evaluated at once when chunking (bounds the working set to ~100 MB).
 DEFAULT_CHUNK = 1 << 19
@@ -260,6 +264,60 @@ def _run(shade, *args):
             warnings.warn(f"render: compiled kernel unavailable ({type(exc).__name__}); using eager mode", stacklevel=3)
             _COMPILED[0] = None
     return _shade(*args)
+
+
+def render_maps(
+    maps: MapSet,
+    lights: LightSet,
+    field_mm: Sequence[float],
+    scale: float = 1.0,
+    rows: tuple[int, int] | None = None,
+    compile: bool | None = None,
+) -> Tensor:
+    """A map set as the camera sees it under each light: (L, 3, H, W) linear radiance.
+
+    The four reflectance maps are rendered (:func:`render`, design.md "Image
+    formation") over the field they cover, then
+
+        image = (scale · rendering + emissive) · alpha
+
+    the emissive map (light the sample gives off, linear RGB) added and alpha
+    (coverage; 0 shows a black stage) multiplied, each where the map set has it.
+
+    Args:
+        maps: (C, H, W) maps (:class:`~matscan.mapset.MapSet`), covering the whole field.
+        lights: L lights, positions in mm in the sample frame (design.md, "Frames and units").
+        field_mm: (width, height) in mm the maps cover.
+        scale: factor on the reflected light (a fitted intensity scale), not on emission.
+        rows: (start, stop) renders only those rows, at their place in the field.
+        compile: as for :func:`render`.
+
+    Returns:
+        (L, 3, H, W) linear radiance in the maps' dtype (``rows``: (L, 3, stop − start, W)).
+        Not clamped: highlights may exceed 1.
+    """
+    height, width = maps.size
+    start, stop = rows if rows is not None else (0, height)
+    if not 0 <= start < stop <= height:
+        raise MatscanError(f"render_maps: rows {(start, stop)} are not a band of the {height} rows of the maps")
+    band = slice(start, stop)
+    points = surface_points(field_mm, (stop - start, width), (start, 0), (height, width), maps.diffuse.dtype)
+    img = render(
+        maps.diffuse[:, band],
+        maps.specular[:, band],
+        maps.roughness[:, band],
+        maps.normal[:, band],
+        lights,
+        points,
+        compile=compile,
+    )
+    if scale != 1.0:
+        img = img * scale
+    if maps.emissive is not None:
+        img = img + maps.emissive[:, band]
+    if maps.alpha is not None:
+        img = img * maps.alpha[:, band]
+    return img
 
 
 def flat_irradiance(lights: LightSet, points: Tensor) -> Tensor:

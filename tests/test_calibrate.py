@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 
 from matscan.calibrate import (
@@ -17,6 +18,7 @@ from matscan.calibrate import (
 from matscan.capture import load_capture, write_capture
 from matscan.capture.virtual import CameraModel, simulate_images
 from matscan.cli import main
+from matscan.errors import MatscanError
 from matscan.imagefile import write_image
 from matscan.mapset import MapSet
 from matscan.rig import LightSet, builtin_rig
@@ -100,3 +102,36 @@ def test_light_scales_are_recovered_and_applied(tmp_path):
     # corrected as read: a region of one photo is the same region of all of them, corrected
     torch.testing.assert_close(corrected.linear([1], rows=(2, 5)), corrected.linear()[[1], :, 2:5], rtol=0, atol=0)
     assert corrected.images.dtype == load_capture(tmp_path / "grey").images.dtype  # codes stay codes
+
+
+def test_calibrate_function_writes_and_returns_the_calibration(tmp_path):
+    # the library function behind `matscan calibrate`: a chart and a grey card in one call
+    from matscan.calibrate import Calibration, calibrate
+
+    a = torch.tensor([[1.1, 0.05, -0.02], [0.03, 0.92, 0.04], [-0.01, 0.08, 1.2]])
+    write_image(tmp_path / "chart.exr", _chart(a).permute(1, 2, 0).numpy(), bits=32)
+    indices, truth = [0, 12, 23], [1.05, 1.2, 0.8]
+    _grey_capture(tmp_path, truth, indices)
+    out = tmp_path / "object" / "calibration.json"  # beside the capture it corrects, never in the grey one
+    cal = calibrate(
+        out,
+        grey=tmp_path / "grey",
+        chart=tmp_path / "chart.exr",
+        corners=[(20, 10), (200, 10), (200, 130), (20, 130)],
+        chart_encoding="linear",
+        flat_fields=True,
+    )
+    assert isinstance(cal, Calibration) and cal.path == out.resolve() and cal.warnings == ()
+    torch.testing.assert_close(cal.colour_matrix, a, atol=1e-4, rtol=0)
+    assert 0 <= cal.chart_error < 1e-4
+    assert [abs(cal.light_scales[str(k)] / s - 1) < 0.005 for k, s in zip(indices, truth, strict=True)] == [True] * 3
+    assert sorted(cal.flat_fields) == ["0", "12", "23"]
+    doc = json.loads(out.read_text())
+    assert doc["light_scales"] == {k: round(v, 6) for k, v in cal.light_scales.items()}
+    assert sorted(p.name for p in out.parent.glob("flat_*.exr")) == ["flat_00.exr", "flat_12.exr", "flat_23.exr"]
+    with pytest.raises(MatscanError, match="exists"):  # an existing calibration needs overwrite=True
+        calibrate(out, chart=tmp_path / "chart.exr", chart_encoding="linear")
+    with pytest.raises(MatscanError, match="give grey"):
+        calibrate(tmp_path / "c.json")
+    with pytest.raises(MatscanError, match="chart_encoding: 'gamma' is not one of srgb, linear"):
+        calibrate(tmp_path / "c.json", chart=tmp_path / "chart.exr", chart_encoding="gamma")

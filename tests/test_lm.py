@@ -170,7 +170,7 @@ def test_negative_linear_values_and_roughness_at_its_bound():
 def test_bands_and_tiles_do_not_change_the_result(monkeypatch):
     # every pixel is solved on its own, and the coarse level pools whole windows: so reading
     # the photos a few rows at a time, and solving a few rows at a time, gives the same maps
-    import matscan.reconstruct.lm as lm
+    from matscan.reconstruct import lm
 
     rig = builtin_rig("dome24")
     lights = rig.light_set()

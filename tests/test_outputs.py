@@ -148,7 +148,7 @@ def test_folder_without_record_is_foreign(tmp_path, capsys, capture):
 def test_existing_output_is_refused_before_reading_the_capture(capture, tmp_path, monkeypatch):
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "x").write_text("x")
-    import matscan.reconstruct.job as rec
+    from matscan.reconstruct import job as rec
 
     def no_work(*args, **kwargs):
         raise AssertionError("the capture was read before the output was checked")
@@ -191,7 +191,7 @@ def test_unwritable_and_full_file_systems_are_refused_before_the_work(capture, t
     monkeypatch.undo()
     usage = namedtuple("usage", "total used free")
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 1000, 1000))
-    import matscan.reconstruct.job as rec
+    from matscan.reconstruct import job as rec
 
     with pytest.raises(MatscanError, match="MiB are free"):
         rec.reconstruct(capture, tmp_path / "out", rec.ReconstructConfig(model="none"))

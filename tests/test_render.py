@@ -247,3 +247,84 @@ def test_flat_albedo_drops_highlights_and_keeps_the_lambertian_value():
     torch.testing.assert_close(flat_albedo(photos, irr), torch.full((3, 2, 2), 0.3))
     # one photo: its own ratio, clipped to [0, 1]
     torch.testing.assert_close(flat_albedo(torch.full((1, 3, 1, 1), 2.0), torch.ones(1, 3, 1, 1)), torch.ones(3, 1, 1))
+
+
+def _special_maps(size: int, dtype: torch.dtype = D64):
+    """random_maps with an alpha and an emissive map."""
+    from matscan.mapset import MapSet
+
+    g = torch.Generator().manual_seed(11)
+    base = random_maps(size=size, seed=5, dtype=dtype)
+    alpha = torch.rand(1, size, size, generator=g, dtype=dtype)
+    emissive = 0.2 * torch.rand(3, size, size, generator=g, dtype=dtype)
+    return MapSet(**base.present(), alpha=alpha, emissive=emissive)
+
+
+def test_render_maps_adds_emission_and_multiplies_alpha():
+    # reference: the plain-Python pixel above, then design.md's (scale·reflection + emissive)·alpha
+    from matscan.render import render_maps
+
+    rig = builtin_rig("dome24")
+    maps = _special_maps(8)
+    scale = 1.3
+    img = render_maps(maps, rig.light_set([2, 17], D64), rig.field_mm, scale)
+    assert img.shape == (2, 3, 8, 8) and img.dtype == D64
+    pts = surface_points(rig.field_mm, (8, 8), dtype=D64)
+    for slot, k in enumerate((2, 17)):
+        lt = rig.lights[k]
+        for i, j in ((0, 0), (3, 5), (7, 2)):
+            reflected = reference_pixel(
+                pts[i, j].tolist(),
+                maps.normal[:, i, j].tolist(),
+                maps.diffuse[:, i, j].tolist(),
+                maps.specular[:, i, j].tolist(),
+                float(maps.roughness[0, i, j]),
+                lt.position_mm,
+                lt.intensity,
+                lt.axis,
+                lt.exponent,
+                rig.camera.position_mm,
+                rig.reference_distance_mm,
+            )
+            a = float(maps.alpha[0, i, j])
+            ref = [(scale * reflected[c] + float(maps.emissive[c, i, j])) * a for c in range(3)]
+            assert img[slot, :, i, j].tolist() == pytest.approx(ref, rel=1e-10, abs=1e-12)
+    # without alpha and emissive it is the renderer's image
+    plain = random_maps(size=8, seed=5)
+    lights = rig.light_set([2, 17])
+    expected = render(
+        plain.diffuse, plain.specular, plain.roughness, plain.normal, lights, surface_points(rig.field_mm, (8, 8))
+    )
+    assert torch.equal(render_maps(plain, lights, rig.field_mm), expected)
+
+
+def test_render_maps_rows_are_a_band_of_the_whole():
+    from matscan.errors import MatscanError
+    from matscan.render import render_maps
+
+    rig = builtin_rig("dome24")
+    maps = _special_maps(12, torch.float32)
+    lights = rig.light_set([0, 9])
+    whole = render_maps(maps, lights, rig.field_mm, 0.8)
+    band = render_maps(maps, lights, rig.field_mm, 0.8, rows=(3, 8))
+    assert band.shape == (2, 3, 5, 12)
+    torch.testing.assert_close(band, whole[..., 3:8, :], rtol=0, atol=0)
+    for rows in ((5, 5), (-1, 4), (0, 13)):
+        with pytest.raises(MatscanError, match="are not a band of the 12 rows"):
+            render_maps(maps, lights, rig.field_mm, rows=rows)
+
+
+def test_render_maps_gradcheck():
+    from matscan.mapset import MapSet
+    from matscan.render import render_maps
+
+    rig = builtin_rig("dome24")
+    base = _special_maps(2)
+    lights = rig.light_set([4, 20]).to(D64)
+    inputs = tuple(t.clone().requires_grad_() for t in (base.diffuse, base.roughness, base.alpha, base.emissive))
+
+    def f(diffuse, roughness, alpha, emissive):
+        maps = MapSet(diffuse, base.specular, roughness, base.normal, alpha=alpha, emissive=emissive)
+        return render_maps(maps, lights, rig.field_mm, 0.9)
+
+    assert torch.autograd.gradcheck(f, inputs)

@@ -47,6 +47,7 @@ from matscan.rig import (
     resolve_rig,
     rig_to_dict,
 )
+from matscan.samples import capture_folder
 
 CAPTURE_FORMAT = "matscan-capture/1"
 ENCODINGS = ("srgb", "linear")
@@ -410,14 +411,14 @@ def _read_calibration(raw: Any, folder: Path, path: Path) -> tuple[dict[str, Any
 
 
 def load_capture(folder: str | Path, lights: Sequence[int] | None = None) -> Capture:
-    """Read and check a capture folder.
+    """Read and check a capture folder (``"@sample"``: the built-in sample capture).
 
     ``lights`` keeps only the images of those rig lights (all by default).
     Errors name the file and the problem in one line; nothing in the folder changes.
     The calibration is read (and checked to be an object) but not applied: see
     :func:`matscan.calibrate.apply_calibration`, which checks its fields.
     """
-    folder = Path(folder)
+    folder = capture_folder(folder)
     path, data = _read_document(folder)
     rig = _read_rig(data["rig"], folder, path)
     encoding = data.get("encoding", "srgb")

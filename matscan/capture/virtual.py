@@ -30,7 +30,7 @@ from matscan.capture.folder import ENCODINGS, write_capture
 from matscan.color import linear_to_srgb, srgb_to_linear
 from matscan.errors import MatscanError
 from matscan.mapset import MapSet, normalize_normals
-from matscan.render import render, surface_points
+from matscan.render import render_maps
 from matscan.rig import Light, LightSet, Rig
 
 #: Backlight colours (linear RGB radiance) of the stage, and the dim room light on
@@ -151,14 +151,9 @@ def simulate_images(
     Holes (alpha < 1) show a black stage; the emissive map adds to every photo.
     """
     gen = torch.Generator().manual_seed(seed)
-    points = surface_points(field_mm, maps.size)
     images = []
     for k in tqdm(range(len(lights)), desc="render", unit="light", disable=not progress, leave=False):
-        rad = render(maps.diffuse, maps.specular, maps.roughness, maps.normal, lights.select([k]), points)[0]
-        if maps.emissive is not None:
-            rad = rad + maps.emissive
-        if maps.alpha is not None:
-            rad = rad * maps.alpha
+        rad = render_maps(maps, lights.select([k]), field_mm)[0]
         images.append(apply_camera(rad, camera, gen))
     return torch.stack(images)
 

@@ -323,7 +323,8 @@ def reconstruct(
     progress: bool = False,
     overwrite_any: bool = False,
 ) -> dict[str, Any]:
-    """``matscan reconstruct``: read a capture, write maps and ``matscan.json``; return the record.
+    """``matscan reconstruct``: read a capture (``"@sample"``: the built-in sample capture),
+    write maps and ``matscan.json``; return the record.
 
     The output is checked and locked before anything is read
     (:func:`matscan.outputs.claim_output`): it never touches the capture, and
@@ -333,9 +334,10 @@ def reconstruct(
     t_all = time.perf_counter()
     from matscan.calibrate import apply_calibration
     from matscan.outputs import capture_inputs, claim_output
+    from matscan.samples import capture_folder
     from matscan.weights import model_path
 
-    capture_path = Path(capture_path)
+    capture_path = capture_folder(capture_path)
     inputs = capture_inputs(capture_path)
     if cfg.model != "none":
         inputs.append(model_path(cfg.model))

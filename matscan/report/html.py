@@ -26,7 +26,7 @@ from matscan.capture import Capture
 from matscan.color import linear_to_srgb
 from matscan.jsonfile import dumps
 from matscan.mapset import MapSet
-from matscan.render import render, surface_points
+from matscan.render import render_maps
 from matscan.report.sheet import to_display
 
 HERE = Path(__file__).parent
@@ -60,29 +60,16 @@ def heat(err: Tensor, top: float) -> np.ndarray:
 
 def per_light_rows(capture: Capture, maps: MapSet, scale: float) -> tuple[list[dict[str, Any]], float]:
     """Photo, re-rendering and error of every input, at display size; and the overall RMSE."""
-    pts = surface_points(capture.field_mm, capture.size)
     rows, total, count = [], 0.0, 0
     for i, file in enumerate(capture.files):
         img = torch.empty(3, *capture.size)  # one photo and its rendering at a time, made a band at a time
         photo = torch.empty(3, *capture.size)
         sq, n = 0.0, 0
+        light = capture.lights.select([i])
         for band_rows in capture.strips(1):
             r = slice(*band_rows)
             with torch.no_grad():
-                band = render(
-                    maps.diffuse[:, r],
-                    maps.specular[:, r],
-                    maps.roughness[:, r],
-                    maps.normal[:, r],
-                    capture.lights.select([i]),
-                    pts[r],
-                    compile=False,
-                )[0]
-            band = band * scale
-            if maps.emissive is not None:
-                band = band + maps.emissive[:, r]
-            if maps.alpha is not None:
-                band = band * maps.alpha[:, r]
+                band = render_maps(maps, light, capture.field_mm, scale, band_rows, compile=False)[0]
             img[:, r] = band.clamp(0, 1)
             photo[:, r] = capture.linear([i], band_rows)[0]
             ok = ~capture.saturation([i], band_rows)[0].expand_as(band)
