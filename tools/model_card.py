@@ -9,6 +9,12 @@ own metadata and the run's log).
 Run: .venv/bin/python tools/model_card.py runs/dome24-cpu [count] [--fill FILE]
 (writes matscan/weights/dome24-cpu.safetensors and docs/model-card.md)
 
+The card's second table, on materials unlike the training set, comes from a study:
+    matscan evaluate procedural:8 photos artist --encodings srgb8 --out docs/results/engine ...
+    .venv/bin/python tools/model_card.py --unlike docs/results/engine/results.json
+(rewrites that section only; it names the weights file's SHA-256, and a card rewritten
+for other weights keeps the section marked stale until the study is re-run).
+
 A run that trained only some of the four networks (``matscan train --maps``) is
 completed with the others of ``--fill`` (default: the weights the run started
 from, its ``init``); the card says, per network, how much training is behind it.
@@ -31,6 +37,77 @@ from matscan.train import CHECKPOINT, _metadata, export_weights, load_weights
 from matscan.weights import ROOT, SHIPPED
 
 MAP_COLUMNS = ("rmse_diffuse", "rmse_specular", "rmse_roughness", "rmse_normal", "normal_degrees")
+CARD = Path("docs/model-card.md")
+UNLIKE = "## On materials unlike the training set"
+UNLIKE_METHODS = ("nets", "baseline", "fit", "auto")
+UNLIKE_COLUMNS = ("rmse_diffuse", "rmse_specular", "rmse_roughness", "normal_degrees", "novel_rmse")
+
+
+def sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def unlike_section(results: Path, weights: Path) -> list[str]:
+    """The card's section on the study's texture-photograph and artist-style map sets."""
+    doc = json.loads(results.read_text())
+    rows = [r for r in doc["rows"] if r["material"].startswith(("photo-", "artist-")) and r["encoding"] == "srgb8"]
+    materials = sorted({r["material"] for r in rows})
+    lines = [
+        UNLIKE,
+        "",
+        f"Weights SHA-256 `{sha256(weights)[:16]}`. {len(materials)} map sets that no network was trained on "
+        f"({', '.join(m for m in materials)}; `matscan/materials/photos.py` and `artist.py`, 256², "
+        "docs/artist-materials.png), photographed by the virtual dome24 in 8-bit sRGB with noise under each "
+        "Table 4 subset; mean over the map sets. `nets`: these networks alone; `baseline`: as above; `fit`: the "
+        "second-order solver from the baseline's flat start, no networks (per-pixel fitting); `auto`: what "
+        "`matscan reconstruct` does by default. `novel`: RMSE of renderings under 16 lights the rig does not "
+        "have (docs/results.md).",
+        "",
+        "| lights | method | diffuse | specular | roughness | normal ° | novel |",
+        "|---:|---|---:|---:|---:|---:|---:|",
+    ]
+    novel: dict[tuple[str, str], float] = {}
+    for lights in doc["lights"]:
+        for method in UNLIKE_METHODS:
+            sel = [r for r in rows if r["lights"] == lights and r["method"] == method]
+            if not sel:
+                continue
+            means = [sum(r[c] for r in sel) / len(sel) for c in UNLIKE_COLUMNS]
+            novel[lights, method] = means[-1]
+            lines.append(
+                f"| {lights} | {method} | "
+                + " | ".join(
+                    f"{v:.1f}" if c == "normal_degrees" else f"{v:.4f}"
+                    for c, v in zip(UNLIKE_COLUMNS, means, strict=True)
+                )
+                + " |"
+            )
+    for other in ("baseline", "fit"):
+        counts = [n for n in doc["lights"] if (n, "nets") in novel and (n, other) in novel]
+        below = [n for n in counts if novel[n, "nets"] < novel[n, other]]
+        where = f"{len(below)} of the {len(counts)} light counts ({', '.join(below)})" if below else "no light count"
+        lines += ["", f"The networks' novel-light error is below the {other}'s at {where}."]
+    lines += ["", f"Made with `.venv/bin/python tools/model_card.py --unlike {results}`.", ""]
+    return lines
+
+
+def replace_unlike(card: str, section: list[str]) -> str:
+    """The card with its unlike-the-training-set section replaced (or appended)."""
+    head, found, _ = card.partition(UNLIKE)
+    return head.rstrip("\n") + "\n\n" + "\n".join(section) if found else card.rstrip("\n") + "\n\n" + "\n".join(section)
+
+
+def kept_unlike(card: str, weights: Path) -> list[str]:
+    """The old card's unlike section, marked stale when it was made with other weights."""
+    _, found, tail = card.partition(UNLIKE)
+    if not found:
+        return []
+    section = (UNLIKE + tail).rstrip("\n").split("\n")
+    if sha256(weights)[:16] not in section[2]:
+        section[2:2] = ["**Stale: made with earlier weights; re-run the study and `--unlike`.**", ""]
+    return ["", *section, ""]
 
 
 def reading(table: dict, statistic: str) -> list[str]:
@@ -77,10 +154,18 @@ def reading(table: dict, statistic: str) -> list[str]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run", type=Path)
+    parser.add_argument("run", type=Path, nargs="?")
     parser.add_argument("count", type=int, nargs="?", default=64, help="validation materials (default 64)")
     parser.add_argument("--fill", type=Path, default=None, help="weights of the networks the run did not train")
+    parser.add_argument("--unlike", type=Path, help="rewrite only the unlike-the-training-set section from this study")
     args = parser.parse_args()
+    if args.unlike:
+        card = CARD.read_text()
+        CARD.write_text(replace_unlike(card, unlike_section(args.unlike, ROOT / SHIPPED["default"])))
+        return 0
+    if args.run is None:
+        parser.error("give a training run, or --unlike RESULTS")
+    old_card = CARD.read_text() if CARD.is_file() else ""
     run, count = args.run, args.count
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
     run_meta = _metadata(run / CHECKPOINT)
@@ -200,7 +285,8 @@ def main() -> int:
     lines += ["", *reading(table, net["photo_statistic"])]
     cmd = f"tools/model_card.py {run} {count}" + (f" --fill {args.fill}" if args.fill else "")
     lines += ["", f"Scored in {seconds:.0f} s with `.venv/bin/python {cmd}`.", ""]
-    Path("docs/model-card.md").write_text("\n".join(lines))
+    lines += kept_unlike(old_card, weights)
+    CARD.write_text("\n".join(lines))
     print("\n".join(lines[-len(table) * 2 - 4 :]))
     return 0
 
