@@ -134,6 +134,27 @@ def test_uncalibrated_flash_capture_gets_an_intensity_scale(tmp_path):
         assert abs(res.intensity_scale / expected - 1) < 0.25, (family, res.intensity_scale, expected)
 
 
+def test_flash_scale_is_never_so_small_that_albedos_pin_at_one(tmp_path):
+    # a metallic print under a phone flash, highlights saturated in 8-bit photos: the dielectric
+    # assumption alone put the scale at 0.14 (true 1), so the metal's albedos pinned at 1 and a
+    # photo left out was predicted with sRGB RMSE 0.197; raised until nothing pins, 0.145
+    from matscan.color import linear_to_srgb
+    from matscan.materials.procedural import generate
+    from matscan.render import render_maps
+
+    maps = generate("metallic_print", 64, 3)
+    folder = tmp_path / "metal"
+    simulate(maps, builtin_rig("flash"), folder, camera=CameraModel(read_noise=0.002))
+    capture = load_capture(folder)
+    assert float(capture.saturated.float().mean()) > 0.2  # what made the scale hard to find
+    res = reconstruct_capture(capture.select([0, 1, 2, 3, 5, 6, 7, 8]), ReconstructConfig(), None)
+    assert res.intensity_scale > 0.3
+    assert float((res.maps.specular >= 0.999).float().mean()) == 0
+    img = (render_maps(res.maps, capture.lights.select([4]), capture.field_mm)[0] * res.intensity_scale).clamp(0, 1)
+    rmse = float((linear_to_srgb(img) - linear_to_srgb(capture.linear([4])[0])).square().mean().sqrt())
+    assert rmse < 0.17
+
+
 def test_leave_out_validation(tmp_path, capsys):
     _capture(tmp_path, size=24, name="v")
     assert (

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from matscan.capture import Capture
 from matscan.mapset import MapSet
-from matscan.reconstruct.lm import SolverConfig, solve_rows
+from matscan.reconstruct.lm import SolverConfig, solve, solve_rows
 from matscan.render import flat_albedo, flat_irradiance, render, surface_points
 from matscan.rig import LightSet
 
@@ -200,6 +200,64 @@ def _fit_scale(photos: Tensor, valid: Tensor, points: Tensor, lights: LightSet, 
     return log_k.detach()
 
 
+#: Albedo values pinned at 1 (of the diffuse and specular maps fitted on the small image)
+#: above which an intensity scale is taken to be too small.
+PINNED = 0.002
+#: How much the scale grows each time it is found too small.
+SCALE_STEP = 1.5
+
+
+def _scale_floor(
+    photos: Tensor,
+    valid: Tensor,
+    points: Tensor,
+    lights: LightSet,
+    scale: float,
+    start: MapSet,
+    cfg: SolverConfig,
+    strength: float,
+    tries: int = 8,
+) -> float:
+    """The intensity scale raised until the maps fitted to the small photos (:func:`_pooled`)
+    stay inside [0, 1].
+
+    Re-rendering is the same for any scale k as long as the albedos can take the photos ÷ k:
+    k·(ρ/k) = ρ. So the photos say nothing of k above that bound, but a k below it shows as
+    albedos pinned at their upper bound 1, which cannot explain the photos. _fit_scale's
+    estimate assumes dielectric highlights (F0 0.04); on a metallic print, whose bright
+    highlights are mostly saturated, it came out 5 times too small (0.21 against 1), and
+    every held-out photo was then predicted badly. Raising k until nothing is pinned fixes that
+    without changing the estimate where the assumption holds.
+    """
+    hh, ww = photos.shape[-2:]
+    pooled = {
+        name: F.adaptive_avg_pool2d(getattr(start, name)[None], (hh, ww))[0]
+        for name in ("diffuse", "specular", "roughness", "normal")
+    }
+    normal = pooled["normal"] / pooled["normal"].norm(dim=0, keepdim=True).clamp_min(1e-8)
+    small_cfg = SolverConfig(
+        iterations=0, fine_iterations=cfg.fine_iterations + 4, coarse=0, tau=cfg.tau, tile_pixels=hh * ww
+    )
+    for _ in range(tries):
+        out, _ = solve(
+            photos / scale,
+            valid,
+            lights,
+            points,
+            pooled["diffuse"],
+            pooled["specular"],
+            pooled["roughness"],
+            normal,
+            small_cfg,
+            strength,
+        )
+        pinned = max(float((out["diffuse"] >= 0.999).float().mean()), float((out["specular"] >= 0.999).float().mean()))
+        if pinned <= PINNED:
+            break
+        scale *= SCALE_STEP
+    return scale
+
+
 def rerender_error(maps: MapSet, capture: Capture, positions: list[int], scale: float = 1.0) -> float:
     """RMSE between photos (at these capture positions) and renderings of ``maps``,
     over unsaturated pixels (a band of rows at a time)."""
@@ -249,7 +307,9 @@ def solve_maps(
     points = surface_points(capture.field_mm, (h, w))
     scale = 1.0
     if capture.rig.per_image_geometry:
-        scale = float(_fit_scale(*_pooled(capture, used, points), lights).exp())
+        small, valid_small, points_small = _pooled(capture, used, points)
+        scale = float(_fit_scale(small, valid_small, points_small, lights).exp())
+        scale = _scale_floor(small, valid_small, points_small, lights, scale, start, cfg, strength)
 
     def read(r0: int, r1: int) -> tuple[Tensor, Tensor]:
         photos = capture.linear(used, (r0, r1))
