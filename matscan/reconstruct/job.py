@@ -45,7 +45,7 @@ class ReconstructConfig:
     """How a capture is reconstructed."""
 
     model: str = "default"
-    refine: str = "auto"  # "auto": on from REFINE_AUTO_PHOTOS photos, or without networks; "on"; "off"
+    refine: str = "auto"  # "auto": by photo count and evidence (reconstruct_capture); "on"; "off"
     solver: str = "lm"  # "lm": second-order, with confidence maps; "adam": first-order (fits emissive too)
     lm: SolverConfig = SolverConfig()
     refine_steps: int = 150  # the settings below are the adam solver's
@@ -81,7 +81,9 @@ class ReconstructConfig:
             raise MatscanError("refine_lr: must be above 0")
 
 
-#: ``--refine auto`` refines captures with at least this many photos, per solver.
+#: ``--refine auto`` refines captures with at least this many photos, per solver. With the
+#: networks on a fixed-light rig the lm solver's choice is made below (ONE_PHOTO,
+#: EVIDENCE_PHOTOS); this table then holds for adam, and for lm where no choice is made.
 #: adam, measured in docs/results.md (11 materials, Table 4 subsets): from 10 photos up
 #: refinement lowers every error of the networks' maps but specular's (a tie) and halves
 #: the re-rendering error under novel lights; with 1–3 it raises nearly all of them.
@@ -174,7 +176,7 @@ CANDIDATES = {"networks+solver": (True, "on"), "solver": (False, "on")}
 
 #: What ``--refine auto`` does with one photo (lm solver): measured in docs/results.md
 #: (256², 8-bit sRGB, novel-light RMSE), the solver from a flat start 0.0653 against the
-#: networks' 0.0770 on 8 map sets unlike the training set, and 0.0503 against 0.0493 on 8
+#: networks' 0.0770 on 8 map sets unlike the training set, and 0.0591 against 0.0600 on 8
 #: procedural ones: the networks' guesses from one photo cost more where they are wrong than
 #: they gain where they are right.
 ONE_PHOTO = "solver"
