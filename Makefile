@@ -26,6 +26,10 @@ test: $(STAMP)
 		{ echo "installing Debian's chromium for the report test"; \
 		  (apt-get update -qq && apt-get install -y -qq chromium) >/dev/null 2>&1 || \
 		  echo "chromium could not be installed: the browser test will be skipped"; }
+	@test -d $(VENV)/node/node_modules/gltf-validator || ! command -v npm >/dev/null || \
+		{ echo "installing the Khronos glTF validator (npm gltf-validator) for the export test"; \
+		  npm install --prefix $(VENV)/node --no-audit --no-fund --silent gltf-validator >/dev/null 2>&1 || \
+		  echo "gltf-validator could not be installed: the validator test will be skipped"; }
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)

@@ -9,6 +9,8 @@
   tangent frame is ours: +x right, +y up), emission, and
   ``KHR_materials_specular`` where the specular colour is not what the
   metal/rough conversion gives back.
+* **glTF binary** (``material.glb``): the same document in one file, the quad and
+  every texture embedded (for viewers and engines that take a single file).
 * **MaterialX** (``material.mtlx``): a ``standard_surface`` reading the same
   textures (base colour in sRGB, the rest raw).
 * **EXR maps** (``exr/``): every map as float32 EXR, linear.
@@ -188,6 +190,41 @@ def gltf_document(
     return doc
 
 
+GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
+
+
+def _padded(data: bytes, fill: bytes) -> bytes:
+    return data + fill * (-len(data) % 4)
+
+
+def glb_bytes(doc: dict[str, Any], folder: Path) -> bytes:
+    """The glTF document ``doc`` (written beside its files in ``folder``) as one GLB file
+    (glTF 2.0 spec, "GLB File Format Specification"): its buffer and every image it
+    references moved into the binary chunk, each image a 4-byte-aligned buffer view."""
+    import copy
+
+    doc = copy.deepcopy(doc)
+    blob = bytearray(_padded((folder / doc["buffers"][0]["uri"]).read_bytes(), b"\0"))
+    for image in doc["images"]:
+        data = (folder / image.pop("uri")).read_bytes()
+        doc["bufferViews"].append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)})
+        image["bufferView"] = len(doc["bufferViews"]) - 1
+        image["mimeType"] = "image/png"
+        blob += _padded(data, b"\0")
+    doc["buffers"] = [{"byteLength": len(blob)}]
+    text = _padded(dumps(doc, "material.glb").encode("utf-8"), b" ")
+    total = 12 + 8 + len(text) + 8 + len(blob)
+    return b"".join(
+        [
+            struct.pack("<3I", GLB_MAGIC, 2, total),
+            struct.pack("<2I", len(text), GLB_JSON),
+            text,
+            struct.pack("<2I", len(blob), GLB_BIN),
+            bytes(blob),
+        ]
+    )
+
+
 def materialx_document(textures: dict[str, str], name: str = "material") -> str:
     """A MaterialX 1.39 document: standard_surface reading the textures."""
     nodes = [
@@ -259,8 +296,9 @@ def export_all(
         written.append("tex_specular_color.png")
     doc = gltf_document(maps, field_mm, textures, folder)
     (folder / "material.gltf").write_text(dumps(doc, "material.gltf"), encoding="utf-8")
+    (folder / "material.glb").write_bytes(glb_bytes(doc, folder))
     (folder / "material.mtlx").write_text(materialx_document(textures), encoding="utf-8")
-    written += ["material.gltf", "material.bin", "material.mtlx"]
+    written += ["material.gltf", "material.bin", "material.glb", "material.mtlx"]
     if exr:
         (folder / "exr").mkdir(exist_ok=True)
         write_maps(folder / "exr", maps, file_format="exr")

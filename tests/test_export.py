@@ -96,3 +96,57 @@ def test_materialx_validates(tmp_path):
     valid, message = doc.validate()
     assert valid, message
     assert doc.getNode("material") is not None
+
+
+def test_glb_holds_the_gltf_and_its_files(tmp_path):
+    # read back with pygltflib's own GLB reader: the same document, with the quad's buffer and
+    # each texture byte for byte inside the one file
+    import pygltflib
+
+    export_all(tmp_path, _maps(alpha=torch.rand(1, 8, 8)), (100.0, 100.0))
+    gltf = json.loads((tmp_path / "material.gltf").read_text())
+    glb = pygltflib.GLTF2().load_binary(str(tmp_path / "material.glb"))
+    blob = glb.binary_blob()
+    assert len(glb.images) == len(gltf["images"]) and glb.materials[0].name == gltf["materials"][0]["name"]
+    for image, ref in zip(glb.images, gltf["images"], strict=True):
+        view = glb.bufferViews[image.bufferView]
+        assert view.byteOffset % 4 == 0 and image.mimeType == "image/png"
+        assert blob[view.byteOffset : view.byteOffset + view.byteLength] == (tmp_path / ref["uri"]).read_bytes()
+    quad = (tmp_path / "material.bin").read_bytes()
+    assert blob[: len(quad)] == quad
+    for view, ref in zip(glb.bufferViews, gltf["bufferViews"], strict=False):  # the quad's views unchanged
+        assert (view.byteOffset or 0, view.byteLength) == (ref.get("byteOffset", 0), ref["byteLength"])
+    raw = (tmp_path / "material.glb").read_bytes()
+    magic, version, length = struct.unpack("<3I", raw[:12])
+    assert (magic, version, length) == (0x46546C67, 2, len(raw))
+
+
+def _validator():
+    import shutil
+    from pathlib import Path
+
+    module = Path(__file__).resolve().parents[1] / ".venv" / "node" / "node_modules" / "gltf-validator"
+    if not shutil.which("node") or not module.is_dir():
+        pytest.skip("the Khronos glTF validator (npm gltf-validator, installed by make test) is not here")
+    return module
+
+
+def test_khronos_validator_passes_gltf_and_glb(tmp_path):
+    import subprocess
+
+    module = _validator()
+    export_all(tmp_path, _maps(coloured_dielectric=True), (100.0, 100.0))
+    script = (
+        "const v = require(process.argv[1]); const fs = require('fs'); const path = require('path');"
+        "const f = process.argv[2]; const dir = path.dirname(f);"
+        "v.validateBytes(new Uint8Array(fs.readFileSync(f)), {uri: path.basename(f),"
+        " externalResourceFunction: (u) => fs.promises.readFile(path.join(dir, decodeURIComponent(u)))"
+        ".then((b) => new Uint8Array(b))})"
+        ".then((r) => console.log(JSON.stringify(r.issues)));"
+    )
+    for name in ("material.gltf", "material.glb"):
+        out = subprocess.run(
+            ["node", "-e", script, str(module), str(tmp_path / name)], capture_output=True, text=True, check=True
+        )
+        issues = json.loads(out.stdout)
+        assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, (name, issues["messages"])
