@@ -54,22 +54,24 @@ def write_textures(folder: Path, maps: MapSet) -> dict[str, str]:
     rgb = linear_to_srgb(base.clamp(0, 1))
     if maps.alpha is not None:
         rgb = torch.cat([rgb, maps.alpha.clamp(0, 1)])
-    write_image(folder / "tex_basecolor.png", _hwc(rgb), bits=8)
+    write_image(folder / "tex_basecolor.png", _hwc(rgb), bits=8, colourspace="srgb")
     files["basecolor"] = "tex_basecolor.png"
     mr = torch.cat([torch.ones_like(metal), maps.roughness.clamp(0, 1), metal.clamp(0, 1)])
-    write_image(folder / "tex_metallic_roughness.png", _hwc(mr), bits=8)
+    write_image(folder / "tex_metallic_roughness.png", _hwc(mr), bits=8, colourspace="linear")
     files["metallic_roughness"] = "tex_metallic_roughness.png"
-    write_image(folder / "tex_roughness.png", _hwc(maps.roughness.clamp(0, 1)), bits=8)
+    write_image(folder / "tex_roughness.png", _hwc(maps.roughness.clamp(0, 1)), bits=8, colourspace="linear")
     files["roughness"] = "tex_roughness.png"
-    write_image(folder / "tex_metallic.png", _hwc(metal.clamp(0, 1)), bits=8)
+    write_image(folder / "tex_metallic.png", _hwc(metal.clamp(0, 1)), bits=8, colourspace="linear")
     files["metallic"] = "tex_metallic.png"
-    write_image(folder / "tex_normal.png", _hwc((maps.normal + 1) / 2), bits=8)
+    write_image(folder / "tex_normal.png", _hwc((maps.normal + 1) / 2), bits=8, colourspace="linear")
     files["normal"] = "tex_normal.png"
     if maps.emissive is not None:
-        write_image(folder / "tex_emissive.png", _hwc(linear_to_srgb(maps.emissive.clamp(0, 1))), bits=8)
+        write_image(
+            folder / "tex_emissive.png", _hwc(linear_to_srgb(maps.emissive.clamp(0, 1))), bits=8, colourspace="srgb"
+        )
         files["emissive"] = "tex_emissive.png"
     if maps.alpha is not None:
-        write_image(folder / "tex_opacity.png", _hwc(maps.alpha.clamp(0, 1)), bits=8)
+        write_image(folder / "tex_opacity.png", _hwc(maps.alpha.clamp(0, 1)), bits=8, colourspace="linear")
         files["opacity"] = "tex_opacity.png"
     return files
 
@@ -290,7 +292,7 @@ def export_all(
     if specular_residual(maps) > SPECULAR_EXTENSION_THRESHOLD:
         ratio = (maps.specular / DIELECTRIC_F0).clamp(0, 25)
         factor = max(1.0, float(ratio.max()))
-        write_image(folder / "tex_specular_color.png", _hwc(linear_to_srgb(ratio / factor)), bits=8)
+        write_image(folder / "tex_specular_color.png", _hwc(linear_to_srgb(ratio / factor)), bits=8, colourspace="srgb")
         textures["specular_color"] = "tex_specular_color.png"
         textures["specular_color_factor"] = factor  # type: ignore[assignment]
         written.append("tex_specular_color.png")
@@ -305,6 +307,6 @@ def export_all(
         written.append("exr/")
     if directx_normals:
         dx = maps.normal * torch.tensor([1.0, -1.0, 1.0]).view(3, 1, 1)
-        write_image(folder / "normal_directx.png", _hwc((dx + 1) / 2), bits=16)
+        write_image(folder / "normal_directx.png", _hwc((dx + 1) / 2), bits=16, colourspace="linear")
         written.append("normal_directx.png")
     return written

@@ -226,13 +226,25 @@ def _read_raw(path: Path) -> ImageData:
     return ImageData(np.ascontiguousarray(rgb, dtype=np.uint16), "raw", 16)
 
 
-def write_image(path: str | Path, pixels: np.ndarray, bits: int = 8, header: dict | None = None) -> None:
+#: Rec. 709 / sRGB primaries and D65 white (x, y each): red, green, blue, white.
+REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
+PNG_COLOURSPACES = ("srgb", "linear")
+
+
+def write_image(
+    path: str | Path, pixels: np.ndarray, bits: int = 8, header: dict | None = None, colourspace: str | None = None
+) -> None:
     """Write (H, W, C) pixels; C in {1, 3, 4}; RGB order.
 
     PNG/JPEG/TIFF with ``bits`` 8 or 16 take values in [0, 1] (clipped, rounded);
     TIFF and EXR with ``bits`` 32 store float32 exactly (EXR always does).
-    ``header`` adds string attributes to an EXR file.
+    ``header`` adds attributes to an EXR file (strings, or numbers and tuples such as
+    ``chromaticities``). ``colourspace`` marks a PNG: ``"srgb"`` (sRGB, gAMA 1/2.2 and
+    cHRM chunks: the values are sRGB-encoded) or ``"linear"`` (gAMA 1.0 and cHRM: data
+    or linear values), so viewers and engines need not guess.
     """
+    if colourspace is not None and colourspace not in PNG_COLOURSPACES:
+        raise MatscanError(f"{path}: colour space {colourspace!r} is not one of {', '.join(PNG_COLOURSPACES)}")
     path = Path(path)
     suffix = _suffix(path)
     arr = _channels_last(np.asarray(pixels))
@@ -263,7 +275,34 @@ def write_image(path: str | Path, pixels: np.ndarray, bits: int = 8, header: dic
             ok, buf = cv2.imencode(suffix, np.ascontiguousarray(data))
             if not ok:
                 raise MatscanError(f"{path}: the encoder refused the image")
-            buf.tofile(str(tmp))
+            encoded = buf.tobytes()
+            if colourspace is not None and suffix == ".png":
+                encoded = _png_colour_chunks(encoded, colourspace)
+            tmp.write_bytes(encoded)
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    import struct
+    import zlib
+
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def _png_colour_chunks(png: bytes, colourspace: str) -> bytes:
+    """``png`` with colour-space chunks after its IHDR (PNG 1.2 §4.2.2: sRGB, gAMA, cHRM;
+    gAMA and cHRM beside sRGB as the specification recommends for older readers)."""
+    import struct
+
+    ihdr_end = 8 + 4 + 4 + 13 + 4  # signature, then IHDR: length, type, 13 bytes, CRC
+    if png[12:16] != b"IHDR":
+        raise MatscanError("PNG encoder output does not start with IHDR")
+    chrm = struct.pack(">8I", *(round(v * 100000) for v in (*REC709_CHROMATICITIES[6:], *REC709_CHROMATICITIES[:6])))
+    if colourspace == "srgb":
+        chunks = _png_chunk(b"sRGB", b"\0") + _png_chunk(b"gAMA", struct.pack(">I", 45455))
+    else:
+        chunks = _png_chunk(b"gAMA", struct.pack(">I", 100000))
+    chunks += _png_chunk(b"cHRM", chrm)
+    return png[:ihdr_end] + chunks + png[ihdr_end:]
 
 
 def _quantise(arr: np.ndarray, bits: int) -> np.ndarray:
@@ -276,7 +315,7 @@ def _write_exr(path: Path, arr: np.ndarray, header: dict) -> None:
     import OpenEXR
 
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    hdr.update({str(k): str(v) for k, v in header.items()})
+    hdr.update({str(k): v if isinstance(v, (int, float, tuple)) else str(v) for k, v in header.items()})
     c = arr.shape[2]
     if c == 1:
         channels = {"Y": np.ascontiguousarray(arr[:, :, 0])}

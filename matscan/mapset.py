@@ -37,7 +37,7 @@ from torch import Tensor
 
 from matscan.color import linear_to_srgb, srgb_to_linear
 from matscan.errors import MatscanError, input_error
-from matscan.imagefile import read_image, write_image
+from matscan.imagefile import REC709_CHROMATICITIES, read_image, write_image
 from matscan.jsonfile import (
     check_file_name,
     check_int,
@@ -86,6 +86,14 @@ CONVENTIONS: dict[str, Any] = {
     "specular": "F0, linear in memory and EXR, sRGB-encoded in PNG",
     "brdf": "f_r = rho/pi + D G F / (4 (n.l)(n.v)); GGX D, uncorrelated Smith G, Schlick F",
     "height": "mm; PNG holds (h - min)/(max - min) with min and max in mapset.json",
+    "alpha": "coverage: 1 material, 0 a hole; linear",
+    "metallic": "glTF metalness: 0 dielectric, 1 metal; linear",
+    "basecolor": "glTF base colour (albedo where dielectric, F0 where metal), linear in memory and EXR, "
+    "sRGB-encoded in PNG",
+    "emissive": "light the sample gives off, linear radiance in photo units (1 = the exposure's white), "
+    "linear in memory and EXR, sRGB-encoded in PNG",
+    "colour": "Rec. 709 / sRGB primaries, D65 white; PNGs say so in sRGB or gAMA 1.0 and cHRM chunks, "
+    "EXRs in their chromaticities attribute",
 }
 
 
@@ -330,6 +338,16 @@ def write_maps(
             else:
                 data = t
         file = f"{name}.{file_format}"
-        write_image(folder / file, data.permute(1, 2, 0).numpy(), bits=bits)
+        if file_format == "exr":  # the file says what it holds, for tools that never see mapset.json
+            header = {
+                "chromaticities": REC709_CHROMATICITIES,
+                "matscanMap": name,
+                "matscanConvention": CONVENTIONS.get(name, ""),
+                "matscanFrame": CONVENTIONS["frame"],
+            }
+            write_image(folder / file, data.permute(1, 2, 0).numpy(), bits=bits, header=header)
+        else:
+            colourspace = "srgb" if spec.encoding == "srgb" else "linear"
+            write_image(folder / file, data.permute(1, 2, 0).numpy(), bits=bits, colourspace=colourspace)
         meta["files"][name] = {"file": file, "bits": bits}
     (folder / "mapset.json").write_text(dumps(meta, "mapset.json"), encoding="utf-8")

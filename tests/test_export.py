@@ -150,3 +150,40 @@ def test_khronos_validator_passes_gltf_and_glb(tmp_path):
         )
         issues = json.loads(out.stdout)
         assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, (name, issues["messages"])
+
+
+def test_files_say_their_colour_space(tmp_path):
+    # read by Pillow and by OpenEXR, not by matscan: colour maps carry sRGB, data maps gAMA 1.0,
+    # and EXR maps the Rec. 709 chromaticities and their convention
+    import OpenEXR
+    from PIL import Image
+
+    from matscan.mapset import CONVENTIONS, write_maps
+
+    maps = _maps(alpha=torch.rand(1, 8, 8))
+    write_maps(tmp_path, maps)
+    export_all(tmp_path, maps, (100.0, 100.0))
+    for file in ("diffuse.png", "specular.png", "basecolor.png", "tex_basecolor.png"):
+        info = Image.open(tmp_path / file).info
+        assert info.get("srgb") == 0 and abs(info["gamma"] - 1 / 2.2) < 1e-4, file
+    for file in (
+        "roughness.png",
+        "normal.png",
+        "alpha.png",
+        "metallic.png",
+        "tex_normal.png",
+        "tex_metallic_roughness.png",
+    ):
+        info = Image.open(tmp_path / file).info
+        assert "srgb" not in info and info["gamma"] == 1.0, file
+    (tmp_path / "exr").mkdir()
+    write_maps(tmp_path / "exr", maps, file_format="exr")
+    for name in ("diffuse", "normal", "alpha"):
+        with OpenEXR.File(str(tmp_path / "exr" / f"{name}.exr")) as f:
+            header = dict(f.header())  # a copy: the file's own header goes with it when it closes
+        assert np.allclose(header["chromaticities"], (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290), atol=1e-6)
+        assert header["matscanMap"] == name and header["matscanConvention"] == CONVENTIONS[name]
+    # every map a map set can hold has its convention written
+    from matscan.mapset import SPECS
+
+    assert set(SPECS) <= set(CONVENTIONS)

@@ -407,7 +407,7 @@ def write_confidence(folder: Path, confidence: dict[str, Tensor]) -> dict[str, A
     entry: dict[str, Any] = {}
     for name, t in confidence.items():
         file = f"confidence_{name}.png"
-        write_image(folder / file, t.clamp(0, 1).permute(1, 2, 0).numpy(), bits=8)
+        write_image(folder / file, t.clamp(0, 1).permute(1, 2, 0).numpy(), bits=8, colourspace="linear")
         entry[name] = {"file": file, "mean": round(float(t.mean()), 4)}
     return entry
 
