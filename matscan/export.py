@@ -11,8 +11,9 @@
   metal/rough conversion gives back.
 * **glTF binary** (``material.glb``): the same document in one file, the quad and
   every texture embedded (for viewers and engines that take a single file).
-* **MaterialX** (``material.mtlx``): a ``standard_surface`` reading the same
-  textures (base colour in sRGB, the rest raw).
+* **MaterialX** (``material.mtlx``): a ``standard_surface`` fed by a nodegraph reading
+  the same textures (base colour and specular colour in sRGB, the rest raw), made and
+  validated with the MaterialX API (:func:`materialx_document` states the F0 mapping).
 * **EXR maps** (``exr/``): every map as float32 EXR, linear.
 * **DirectX normals** (``normal_directx.png``): green flipped, for engines that
   want that convention.
@@ -29,6 +30,7 @@ import torch
 
 from matscan.brdf import DIELECTRIC_F0, metallic_to_specular, specular_to_metallic
 from matscan.color import linear_to_srgb
+from matscan.errors import MatscanError
 from matscan.imagefile import write_image
 from matscan.jsonfile import dumps
 from matscan.mapset import MapSet, write_maps
@@ -227,60 +229,73 @@ def glb_bytes(doc: dict[str, Any], folder: Path) -> bytes:
     )
 
 
-def materialx_document(textures: dict[str, str], name: str = "material") -> str:
-    """A MaterialX 1.39 document: standard_surface reading the textures."""
-    nodes = [
-        f'  <image name="basecolor" type="color3"><input name="file" type="filename" '
-        f'value="{textures["basecolor"]}" colorspace="srgb_texture" /></image>',
-        f'  <image name="roughness" type="float"><input name="file" type="filename" '
-        f'value="{textures["roughness"]}" /></image>',
-        f'  <image name="metallic" type="float"><input name="file" type="filename" '
-        f'value="{textures["metallic"]}" /></image>',
-        f'  <image name="normaltex" type="vector3"><input name="file" type="filename" '
-        f'value="{textures["normal"]}" /></image>',
-        '  <normalmap name="normalmap" type="vector3"><input name="in" type="vector3" nodename="normaltex" />'
-        "</normalmap>",
-    ]
-    inputs = [
-        '    <input name="base" type="float" value="1.0" />',
-        '    <input name="base_color" type="color3" nodename="basecolor" />',
-        '    <input name="metalness" type="float" nodename="metallic" />',
-        '    <input name="specular" type="float" value="1.0" />',
-        '    <input name="specular_IOR" type="float" value="1.5" />',
-        '    <input name="specular_roughness" type="float" nodename="roughness" />',
-        '    <input name="normal" type="vector3" nodename="normalmap" />',
-    ]
+#: IOR of standard_surface's dielectric specular: ((1.5 − 1)/(1.5 + 1))² = 0.04 = DIELECTRIC_F0.
+MTLX_IOR = 1.5
+
+
+def materialx_document(textures: dict[str, Any], name: str = "material") -> str:
+    """A MaterialX 1.39 document, made and validated with the MaterialX API: the texture
+    reads in a nodegraph (as translators such as ``translateshader … UsdPreviewSurface``
+    need them), feeding a ``standard_surface``.
+
+    F0 mapping: standard_surface's dielectric reflectance at normal incidence is
+    ``specular · specular_color · ((IOR − 1)/(IOR + 1))²``; with IOR 1.5 the last factor is
+    0.04, so F0 = 0.04 · specular · specular_color. Where the maps need more than the
+    metal/rough conversion gives (``textures["specular_color"]``, the glTF
+    KHR_materials_specular texture holding F0/0.04 ÷ its factor, sRGB-encoded), that
+    texture is ``specular_color`` and its factor is ``specular``; otherwise specular 1 and
+    white, F0 0.04. Metals take F0 from ``base_color`` through ``metalness``.
+    """
+    import MaterialX as mx
+
+    doc = mx.createDocument()
+    doc.setColorSpace("lin_rec709")
+    graph = doc.addNodeGraph(f"NG_{name}")
+    surface = doc.addNode("standard_surface", f"{name}_surface", "surfaceshader")
+
+    def image(key: str, kind: str, srgb: bool = False) -> mx.Node:
+        node = graph.addNode("image", key, kind)
+        node.setInputValue("file", textures[key], "filename")
+        if srgb:
+            node.getInput("file").setColorSpace("srgb_texture")
+        return node
+
+    def connect(surface_input: str, node: mx.Node, kind: str) -> None:
+        out = graph.addOutput(f"out_{surface_input}", kind)
+        out.setConnectedNode(node)
+        port = surface.addInput(surface_input, kind)
+        port.setConnectedOutput(out)
+
+    connect("base_color", image("basecolor", "color3", srgb=True), "color3")
+    connect("metalness", image("metallic", "float"), "float")
+    connect("specular_roughness", image("roughness", "float"), "float")
+    normal = graph.addNode("normalmap", "normalmap", "vector3")
+    normal.setConnectedNode("in", image("normal", "vector3"))
+    connect("normal", normal, "vector3")
+    surface.setInputValue("base", 1.0, "float")
+    surface.setInputValue("specular_IOR", MTLX_IOR, "float")
+    if "specular_color" in textures:
+        connect("specular_color", image("specular_color", "color3", srgb=True), "color3")
+        surface.setInputValue("specular", float(textures.get("specular_color_factor", 1.0)), "float")
+    else:
+        surface.setInputValue("specular", 1.0, "float")
     if "emissive" in textures:
-        nodes.append(
-            f'  <image name="emissive" type="color3"><input name="file" type="filename" '
-            f'value="{textures["emissive"]}" colorspace="srgb_texture" /></image>'
-        )
-        inputs += [
-            '    <input name="emission" type="float" value="1.0" />',
-            '    <input name="emission_color" type="color3" nodename="emissive" />',
-        ]
+        connect("emission_color", image("emissive", "color3", srgb=True), "color3")
+        surface.setInputValue("emission", 1.0, "float")
     if "opacity" in textures:
-        nodes.append(
-            f'  <image name="opacity" type="float"><input name="file" type="filename" '
-            f'value="{textures["opacity"]}" /></image>'
-        )
-        inputs.append('    <input name="opacity" type="color3" nodename="opacity_rgb" />')
-        nodes.append(
-            '  <convert name="opacity_rgb" type="color3"><input name="in" type="float" nodename="opacity" /></convert>'
-        )
-    body = "\n".join(nodes)
-    surface = "\n".join(inputs)
-    return (
-        '<?xml version="1.0"?>\n'
-        '<materialx version="1.39" colorspace="lin_rec709">\n'
-        "  <!-- matscan: roughness is perceptual (GGX alpha = r^2); normals in the OpenGL tangent frame -->\n"
-        f"{body}\n"
-        f'  <standard_surface name="{name}_surface" type="surfaceshader">\n{surface}\n  </standard_surface>\n'
-        f'  <surfacematerial name="{name}" type="material">\n'
-        f'    <input name="surfaceshader" type="surfaceshader" nodename="{name}_surface" />\n'
-        "  </surfacematerial>\n"
-        "</materialx>\n"
-    )
+        rgb = graph.addNode("convert", "opacity_rgb", "color3")
+        rgb.setConnectedNode("in", image("opacity", "float"))
+        connect("opacity", rgb, "color3")
+    material = doc.addMaterialNode(name, surface)
+    material.setDocString("matscan: roughness is perceptual (GGX alpha = r^2); normals in the OpenGL tangent frame")
+    stdlib = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), stdlib)
+    checked = doc.copy()
+    checked.importLibrary(stdlib)
+    valid, message = checked.validate()
+    if not valid:
+        raise MatscanError(f"material.mtlx: the MaterialX document does not validate: {message.strip()}")
+    return mx.writeToXmlString(doc)
 
 
 def export_all(

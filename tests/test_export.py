@@ -187,3 +187,50 @@ def test_files_say_their_colour_space(tmp_path):
     from matscan.mapset import SPECS
 
     assert set(SPECS) <= set(CONVENTIONS)
+
+
+def _mtlx(path):
+    import MaterialX as mx
+
+    doc = mx.createDocument()
+    mx.readFromXmlFile(doc, str(path))
+    stdlib = mx.createDocument()
+    mx.loadLibraries(mx.getDefaultDataLibraryFolders(), mx.getDefaultDataSearchPath(), stdlib)
+    doc.importLibrary(stdlib)
+    return doc
+
+
+def test_materialx_translates_to_usd_preview_surface(tmp_path):
+    # MaterialX's own translator (what `translateshader ... UsdPreviewSurface` runs) must take it
+    import MaterialX.PyMaterialXGenShader as gen
+
+    export_all(tmp_path, _maps(alpha=torch.rand(1, 8, 8), coloured_dielectric=True), (10.0, 10.0))
+    doc = _mtlx(tmp_path / "material.mtlx")
+    gen.ShaderTranslator.create().translateAllMaterials(doc, "UsdPreviewSurface")
+    valid, message = doc.validate()
+    assert valid, message
+    shader = doc.getMaterialNodes()[0].getInput("surfaceshader").getConnectedNode()
+    assert shader.getCategory() == "UsdPreviewSurface"
+
+
+def test_materialx_carries_the_specular_map(tmp_path):
+    # standard_surface's dielectric F0 is specular * specular_color * ((IOR - 1)/(IOR + 1))^2
+    # (Autodesk Standard Surface 1.0, "Specular"): computed from the file it must give the map
+    maps = _maps(coloured_dielectric=True)
+    export_all(tmp_path, maps, (10.0, 10.0))
+    doc = _mtlx(tmp_path / "material.mtlx")
+    surface = doc.getNode("material_surface")
+    ior = surface.getInputValue("specular_IOR")
+    weight = surface.getInputValue("specular")
+    colour_file = surface.getInput("specular_color").getConnectedOutput().getConnectedNode().getInputValue("file")
+    colour = srgb_to_linear(torch.from_numpy(read_image(tmp_path / colour_file).pixels)).permute(2, 0, 1)
+    f0 = weight * colour * ((ior - 1) / (ior + 1)) ** 2
+    assert float((f0 - maps.specular).abs().max()) < 0.002  # 8-bit sRGB texture
+    # without a specular texture: white and weight 1, F0 0.04 as the metal/rough conversion gives
+    (tmp_path / "plain").mkdir()
+    export_all(tmp_path / "plain", _maps(), (10.0, 10.0))
+    plain_doc = _mtlx(tmp_path / "plain" / "material.mtlx")  # held: its nodes need it alive
+    plain = plain_doc.getNode("material_surface")
+    assert plain.getInput("specular_color") is None and plain.getInputValue("specular") == 1.0
+    ior = plain.getInputValue("specular_IOR")
+    assert abs(((ior - 1) / (ior + 1)) ** 2 - 0.04) < 1e-9
