@@ -298,6 +298,79 @@ def materialx_document(textures: dict[str, Any], name: str = "material") -> str:
     return mx.writeToXmlString(doc)
 
 
+def usd_files(
+    folder: Path, textures: dict[str, Any], field_mm: tuple[float, float], name: str = "material"
+) -> list[str]:
+    """``material.usda`` (a quad of the sample's size, metres, z up, bound to a
+    UsdPreviewSurface reading the textures) and ``material.usdz`` (the same packaged with its
+    textures, for AR viewers); nothing when usd-core (the ``usd`` extra) is not installed.
+
+    UsdPreviewSurface's metallic workflow has no specular tint, so the specular colour
+    that glTF (KHR_materials_specular) and MaterialX carry is not in these files; its
+    roughness is perceptual, as ours. Texture coordinates: USD's st has v up, so the
+    image's top row is v = 1.
+    """
+    try:
+        from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, UsdUtils
+    except ImportError:
+        return []
+    usda = folder / f"{name}.usda"
+    stage = Usd.Stage.CreateNew(str(usda))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, "/Root")
+    stage.SetDefaultPrim(root.GetPrim())
+    w, h = field_mm[0] / 1000, field_mm[1] / 1000
+    mesh = UsdGeom.Mesh.Define(stage, "/Root/Sample")
+    mesh.CreatePointsAttr([(-w / 2, h / 2, 0), (-w / 2, -h / 2, 0), (w / 2, -h / 2, 0), (w / 2, h / 2, 0)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])  # counter-clockwise seen from +z
+    mesh.CreateNormalsAttr([(0, 0, 1)] * 4)
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    mesh.CreateExtentAttr([(-w / 2, -h / 2, 0), (w / 2, h / 2, 0)])
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    st.Set([(0, 1), (0, 0), (1, 0), (1, 1)])
+    material = UsdShade.Material.Define(stage, f"/Root/Looks/{name}")
+    surface = UsdShade.Shader.Define(stage, f"/Root/Looks/{name}/PreviewSurface")
+    surface.CreateIdAttr("UsdPreviewSurface")
+    surface.CreateInput("useSpecularWorkflow", Sdf.ValueTypeNames.Int).Set(0)
+    material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+    reader = UsdShade.Shader.Define(stage, f"/Root/Looks/{name}/stReader")
+    reader.CreateIdAttr("UsdPrimvarReader_float2")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+    reader_out = reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
+
+    def texture(key: str, srgb: bool, **extra: Any) -> Any:
+        tex = UsdShade.Shader.Define(stage, f"/Root/Looks/{name}/{key}")
+        tex.CreateIdAttr("UsdUVTexture")
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(f"./{textures[key]}")  # anchored to the layer
+        tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("sRGB" if srgb else "raw")
+        tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader_out)
+        for input_name, value in extra.items():
+            tex.CreateInput(input_name, Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*value))
+        return tex
+
+    def connect(surface_input: str, kind: Any, tex: Any, channels: str) -> None:
+        out = tex.CreateOutput(channels, Sdf.ValueTypeNames.Float3 if channels == "rgb" else Sdf.ValueTypeNames.Float)
+        surface.CreateInput(surface_input, kind).ConnectToSource(out)
+
+    connect("diffuseColor", Sdf.ValueTypeNames.Color3f, texture("basecolor", True), "rgb")
+    connect("metallic", Sdf.ValueTypeNames.Float, texture("metallic", False), "r")
+    connect("roughness", Sdf.ValueTypeNames.Float, texture("roughness", False), "r")
+    normal = texture("normal", False, scale=(2, 2, 2, 1), bias=(-1, -1, -1, 0))
+    connect("normal", Sdf.ValueTypeNames.Normal3f, normal, "rgb")
+    if "emissive" in textures:
+        connect("emissiveColor", Sdf.ValueTypeNames.Color3f, texture("emissive", True), "rgb")
+    if "opacity" in textures:
+        connect("opacity", Sdf.ValueTypeNames.Float, texture("opacity", False), "r")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    stage.GetRootLayer().Save()
+    written = [usda.name]
+    if UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(usda)), str(folder / f"{name}.usdz")):
+        written.append(f"{name}.usdz")
+    return written
+
+
 def export_all(
     folder: Path, maps: MapSet, field_mm: tuple[float, float], exr: bool = False, directx_normals: bool = False
 ) -> list[str]:
@@ -316,6 +389,7 @@ def export_all(
     (folder / "material.glb").write_bytes(glb_bytes(doc, folder))
     (folder / "material.mtlx").write_text(materialx_document(textures), encoding="utf-8")
     written += ["material.gltf", "material.bin", "material.glb", "material.mtlx"]
+    written += usd_files(folder, textures, field_mm)
     if exr:
         (folder / "exr").mkdir(exist_ok=True)
         write_maps(folder / "exr", maps, file_format="exr")

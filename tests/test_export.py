@@ -234,3 +234,35 @@ def test_materialx_carries_the_specular_map(tmp_path):
     assert plain.getInput("specular_color") is None and plain.getInputValue("specular") == 1.0
     ior = plain.getInputValue("specular_IOR")
     assert abs(((ior - 1) / (ior + 1)) ** 2 - 0.04) < 1e-9
+
+
+def test_usd_stage_binds_a_preview_surface_reading_the_textures(tmp_path):
+    # opened with USD itself: the quad's bound material is a UsdPreviewSurface whose inputs come
+    # from UsdUVTexture nodes reading the exported PNGs (sRGB for colour, raw for data)
+    pytest.importorskip("pxr", reason="usd-core (the usd extra) is not installed")
+    import zipfile
+
+    from pxr import Usd, UsdGeom, UsdShade
+
+    written = export_all(tmp_path, _maps(alpha=torch.rand(1, 8, 8)), (120.0, 80.0))
+    assert "material.usda" in written and "material.usdz" in written
+    stage = Usd.Stage.Open(str(tmp_path / "material.usda"))
+    mesh = stage.GetPrimAtPath("/Root/Sample")
+    assert UsdGeom.GetStageUpAxis(stage) == "Z" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    extent = UsdGeom.Mesh(mesh).GetExtentAttr().Get()
+    assert tuple(extent[1]) == pytest.approx((0.06, 0.04, 0.0))  # 120 × 80 mm
+    material, _ = UsdShade.MaterialBindingAPI(mesh).ComputeBoundMaterial()
+    surface = material.ComputeSurfaceSource()[0]
+    assert surface.GetIdAttr().Get() == "UsdPreviewSurface"
+    spaces = {}
+    for name in ("diffuseColor", "metallic", "roughness", "normal", "opacity"):
+        source = surface.GetInput(name).GetConnectedSources()[0][0].source
+        texture = UsdShade.Shader(source.GetPrim())
+        assert texture.GetIdAttr().Get() == "UsdUVTexture"
+        asset = texture.GetInput("file").Get()
+        assert (tmp_path / asset.path).is_file() and asset.resolvedPath  # the file is there and USD finds it
+        spaces[name] = texture.GetInput("sourceColorSpace").Get()
+    assert spaces == {"diffuseColor": "sRGB", "metallic": "raw", "roughness": "raw", "normal": "raw", "opacity": "raw"}
+    with zipfile.ZipFile(tmp_path / "material.usdz") as z:
+        names = z.namelist()
+    assert names[0] == "material.usda" and {"tex_basecolor.png", "tex_normal.png"} <= set(names)

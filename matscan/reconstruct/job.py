@@ -414,7 +414,7 @@ def write_confidence(folder: Path, confidence: dict[str, Tensor]) -> dict[str, A
 
 def output_bytes(h: int, w: int, cfg: ReconstructConfig) -> int:
     """A generous estimate of what a reconstruction of H×W pixels writes: about ten
-    16-bit maps, their glTF textures (twice: beside the .gltf and inside the .glb), the
-    report, and float EXRs when asked."""
-    per_px = 80 + (60 if cfg.exr else 0)
+    16-bit maps, their glTF textures (three times: beside the .gltf, inside the .glb and
+    the .usdz), the report, and float EXRs when asked."""
+    per_px = 96 + (60 if cfg.exr else 0)
     return h * w * per_px + (8 << 20)
