@@ -54,6 +54,18 @@ def test_report_content(report):
     assert text.count("alt='photo'") == 6 and text.count("alt='re-rendering'") == 6
     assert "http://" not in text and "https://" not in text  # nothing fetched: works offline
     assert "u_light" in text  # the viewer's shader is inlined
+    # the title names the capture, not a path on this machine
+    assert re.search(r"<title>matscan report: cap</title>", text)
+    # every file written is linked, and every link leads to a file beside the page
+    links = re.findall(r"<a href='([^']+)'>", text)
+    written = {p.name for p in report.parent.iterdir() if p.name != "report.html"}
+    assert set(links) == written, set(links) ^ written
+    # the conventions are stated on the page, as matscan.json records them
+    import json
+
+    conventions = json.loads((report.parent / "matscan.json").read_text())["conventions"]
+    for key in ("normal", "roughness", "colour"):
+        assert f"<th>{key}</th>" in text and conventions[key].split(";")[0].split(",")[0][:20] in text
 
 
 def _chromium(args, tmp_path):

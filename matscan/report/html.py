@@ -14,6 +14,7 @@ import html
 import json
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import cv2
 import numpy as np
@@ -101,6 +102,11 @@ def _viewer_textures(maps: MapSet) -> dict[str, str]:
     return out
 
 
+def _map_files(maps: MapSet) -> list[str]:
+    """The map files :func:`matscan.mapset.write_maps` writes for these maps (PNG)."""
+    return [f"{name}.png" for name in maps.present()] + ["mapset.json"]
+
+
 def write_report(
     path: Path,
     capture: Capture,
@@ -161,9 +167,21 @@ def write_report(
         "R": capture.rig.reference_distance_mm,
         "textures": _viewer_textures(maps),
     }
+    files = sorted(
+        {*(f for f in record.get("exports", []) if not f.endswith("/")), *_map_files(maps)}
+        | {entry["file"] for entry in record.get("confidence", {}).values()}
+        | {"matscan.json"}
+    )
+    files_html = "\n".join(f"<li><a href='{quote(f)}'>{e(f)}</a></li>" for f in files)
+    conventions_html = "\n".join(
+        f"<tr><th>{e(k)}</th><td>{e(str(v))}</td></tr>" for k, v in record.get("conventions", {}).items()
+    )
+    name = capture.folder.name if capture.folder is not None else str(record.get("capture", ""))
     page = (HERE / "template.html").read_text(encoding="utf-8")
     page = (
-        page.replace("{{TITLE}}", e(f"matscan report: {record.get('capture', '')}"))
+        page.replace("{{TITLE}}", e(f"matscan report: {name}"))
+        .replace("{{FILES}}", files_html)
+        .replace("{{CONVENTIONS}}", conventions_html)
         .replace("{{NUMBERS}}", numbers_html)
         .replace("{{WARNINGS}}", warnings)
         .replace("{{MAPS}}", "\n".join(map_cells))
