@@ -82,7 +82,7 @@ def _chromium(args, tmp_path):
 def test_viewer_in_headless_chromium(report, tmp_path):
     dom = {}
     for name, light in (("left", "-150,0,150"), ("right", "150,0,150")):
-        proc = _chromium(["--dump-dom", f"file://{report}?light={light}"], tmp_path)
+        proc = _chromium(["--dump-dom", f"file://{report}?light={light}&stats=1"], tmp_path)
         assert 'data-viewer="ok"' in proc.stdout, proc.stdout[-500:] + proc.stderr[-2000:]
         assert not re.search(r"Uncaught|CONSOLE\(\d+\).*[Ee]rror", proc.stderr), proc.stderr[-2000:]
         mean = float(re.search(r'data-mean="([0-9.]+)"', proc.stdout).group(1))
@@ -95,3 +95,41 @@ def test_viewer_in_headless_chromium(report, tmp_path):
     assert dom["left"] != dom["right"]
     changed = np.abs(dom["left_png"] - dom["right_png"]).max(axis=2) > 0.02
     assert changed.mean() > 0.01  # the screenshot changes where the viewer is
+
+
+def _canvas_mean(page, tmp_path):
+    proc = _chromium(["--dump-dom", f"file://{page}?light=0,0,150&stats=1"], tmp_path)
+    assert 'data-viewer="ok"' in proc.stdout, proc.stdout[-500:] + proc.stderr[-2000:]
+    return float(re.search(r'data-mean="([0-9.]+)"', proc.stdout).group(1))
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (make test installs it)")
+def test_viewer_shows_alpha_and_emission(report, tmp_path):
+    # the same maps with holes, and glowing: the viewer's canvas must change visibly each time
+    import json
+    from dataclasses import replace
+
+    import torch
+
+    from matscan.capture import load_capture
+    from matscan.report.html import write_report
+
+    out = report.parent
+    maps = read_mapset(out)
+    capture = load_capture(out.parent / "cap")
+    record = json.loads((out / "matscan.json").read_text())
+    h, w = maps.size
+    holes = torch.ones(1, h, w)
+    holes[:, :, : w // 2] = 0  # the left half is a hole: the checkerboard (grey 0.35-0.65) shows
+    variants = {
+        "plain": replace(maps, alpha=None, emissive=None),
+        "holes": replace(maps, alpha=holes, emissive=None),
+        "glow": replace(maps, alpha=None, emissive=torch.full((3, h, w), 0.3)),
+    }
+    means = {}
+    for name, variant in variants.items():
+        page = tmp_path / f"{name}.html"
+        write_report(page, capture, variant, record)
+        means[name] = _canvas_mean(page, tmp_path)
+    assert means["glow"] > means["plain"] + 0.05  # emission 0.3 adds light everywhere
+    assert abs(means["holes"] - means["plain"]) > 0.02

@@ -96,9 +96,21 @@ def per_light_rows(capture: Capture, maps: MapSet, scale: float) -> tuple[list[d
 
 
 def _viewer_textures(maps: MapSet) -> dict[str, str]:
+    """The viewer's textures; a material without emission or holes gets black emission and
+    alpha 1 (constant images, a few bytes as PNG), so the shader has one path."""
+    h, w = maps.size
+    emissive = maps.emissive if maps.emissive is not None else torch.zeros(3, h, w)
+    alpha = maps.alpha if maps.alpha is not None else torch.ones(1, h, w)
     out = {}
-    for name, kind in (("diffuse", "srgb"), ("specular", "srgb"), ("roughness", "grey"), ("normal", "normal")):
-        out[name] = _png_uri(to_display(_shrink(getattr(maps, name), VIEWER), kind))
+    for name, t, kind in (
+        ("diffuse", maps.diffuse, "srgb"),
+        ("specular", maps.specular, "srgb"),
+        ("roughness", maps.roughness, "grey"),
+        ("normal", maps.normal, "normal"),
+        ("emissive", emissive, "srgb"),
+        ("alpha", alpha, "grey"),
+    ):
+        out[name] = _png_uri(to_display(_shrink(t, VIEWER), kind))
     return out
 
 

@@ -1,7 +1,10 @@
 // matscan relighting viewer: the reconstructed maps under a point light you drag.
 // The fragment shader is shared/design.md's image formation with the paper's Eq. 1
 // (GGX, uncorrelated Smith, Schlick), the same model the maps were fitted with.
+// Emission is added to the reflected light and alpha composites the sample over a checkerboard.
 // Reads its data from the page: window.MATSCAN_VIEWER = {field_mm, camera_mm, R, textures: {...}}.
+// With ?stats=1 in the page's address it also writes the canvas's mean and spread into the DOM
+// (for tests: reading the canvas back stalls the GPU, so a normal view never does).
 (function () {
   "use strict";
   var status = document.getElementById("viewer-status");
@@ -26,7 +29,7 @@
   var fs = [
     "precision highp float;",
     "varying vec2 v_uv;",
-    "uniform sampler2D u_diffuse, u_specular, u_roughness, u_normal;",
+    "uniform sampler2D u_diffuse, u_specular, u_roughness, u_normal, u_emissive, u_alpha;",
     "uniform vec2 u_field;      // mm (width, height)",
     "uniform vec3 u_light;      // mm",
     "uniform vec3 u_camera;     // mm",
@@ -63,7 +66,11 @@
     "  vec3 fr = rho / PI + spec;",
     "  // isotropic light of intensity 1: pi * I * (R/d)^2 * f_r * max(n.l, 0)",
     "  vec3 radiance = PI * (u_R / d) * (u_R / d) * fr * max(nl, 0.0);",
-    "  gl_FragColor = vec4(linear_to_srgb(radiance * u_exposure), 1.0);",
+    "  radiance += srgb_to_linear(texture2D(u_emissive, v_uv).rgb);  // light the sample gives off",
+    "  float alpha = texture2D(u_alpha, v_uv).r;",
+    "  float check = mod(floor(gl_FragCoord.x / 16.0) + floor(gl_FragCoord.y / 16.0), 2.0);",
+    "  vec3 behind = vec3(0.35 + 0.3 * check);  // a checkerboard shows through holes",
+    "  gl_FragColor = vec4(mix(behind, linear_to_srgb(radiance * u_exposure), alpha), 1.0);",
     "}"
   ].join("\n");
 
@@ -88,7 +95,7 @@
   gl.enableVertexAttribArray(loc);
   gl.vertexAttribPointer(loc, 2, gl.FLOAT, false, 0, 0);
 
-  var names = ["diffuse", "specular", "roughness", "normal"];
+  var names = ["diffuse", "specular", "roughness", "normal", "emissive", "alpha"];
   var loaded = 0;
   names.forEach(function (name, unit) {
     var tex = gl.createTexture();
@@ -128,7 +135,12 @@
     gl.uniform1f(gl.getUniformLocation(prog, "u_exposure"), exposure ? Number(exposure.value) : 1.0);
     gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
     if (readout) readout.textContent = light.map(function (c) { return c.toFixed(0); }).join(", ");
-    // a summary of what was drawn, for tests and for a person reading the page's DOM
+    var err = gl.getError();
+    report(err === gl.NO_ERROR ? "ok" : "error: WebGL error " + err);
+    if (params.get("stats") === "1") stats();
+  }
+
+  function stats() {  // the canvas's mean and spread, for tests (a read-back: only when asked)
     var px = new Uint8Array(canvas.width * canvas.height * 4);
     gl.readPixels(0, 0, canvas.width, canvas.height, gl.RGBA, gl.UNSIGNED_BYTE, px);
     var sum = 0, sq = 0, count = canvas.width * canvas.height;
@@ -136,8 +148,6 @@
     var mean = sum / count;
     canvas.setAttribute("data-mean", mean.toFixed(5));
     canvas.setAttribute("data-std", Math.sqrt(Math.max(sq / count - mean * mean, 0)).toFixed(5));
-    var err = gl.getError();
-    report(err === gl.NO_ERROR ? "ok" : "error: WebGL error " + err);
   }
 
   function move(ev) {
