@@ -264,7 +264,9 @@ def _render(args: argparse.Namespace, maps_path: Path, pos: tuple[float, ...], o
 
     rig = resolve_rig(args.rig)
     maps = read_mapset(maps_path)
-    lights = LightSet.points([pos], rig.camera.position_mm, rig.reference_distance_mm, args.intensity, args.exponent)
+    lights = LightSet.points(
+        [pos], rig.camera_point, rig.reference_distance_mm, args.intensity, args.exponent, rig.camera_w
+    )
     img = render_maps(maps, lights, rig.field_mm)[0]
     if out.suffix.lower() == ".exr":
         write_image(out, img.permute(1, 2, 0).numpy(), bits=32)

@@ -50,7 +50,7 @@ from matscan.mapset import MapSet, normalize_normals
 from matscan.materials.noise import smoothstep, spectral_noise
 from matscan.materials.procedural import check_prior, random_material
 from matscan.render import render, render_maps, surface_points
-from matscan.rig import LightSet, Rig, resolve_rig
+from matscan.rig import Rig, resolve_rig
 
 #: The stage under the sample, seen through holes: dark, rough, flat.
 STAGE = {"diffuse": 0.02, "specular": 0.02, "roughness": 0.9}
@@ -209,14 +209,7 @@ class SvbrdfDataset(Dataset):
         gains = 1 + cfg.led_jitter * torch.randn(n, 1, generator=g)
         wb = 1 + cfg.white_balance_jitter * torch.randn(1, 3, generator=g)
         exposure = math.exp(cfg.exposure_jitter * float(torch.randn((), generator=g)))
-        lights = LightSet(
-            lights.position,
-            lights.intensity * gains * wb * exposure,
-            lights.axis,
-            lights.exponent,
-            lights.camera,
-            lights.reference_distance_mm,
-        )
+        lights = lights.with_intensity(lights.intensity * gains * wb * exposure)
         with torch.no_grad():
             photos = render(
                 maps.diffuse, maps.specular, maps.roughness, maps.normal, lights, points, compile=cfg.compile

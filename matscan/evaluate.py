@@ -167,8 +167,10 @@ def evaluation_lights(rig: Rig, count: int = 16, seed: int = 12345) -> LightSet:
     """The fixed novel lights of the study (:func:`matscan.losses.novel_lights`)."""
     from matscan.losses import novel_lights
 
-    nl = novel_lights(1, count, rig.reference_distance_mm, rig.camera.position_mm, torch.Generator().manual_seed(seed))
-    return LightSet(nl.position[0], nl.intensity[0], nl.axis[0], nl.exponent[0], nl.camera[0], nl.reference_distance_mm)
+    nl = novel_lights(
+        1, count, rig.reference_distance_mm, rig.camera_point, torch.Generator().manual_seed(seed), rig.camera_w
+    )
+    return nl.batch_item(0)
 
 
 def _method_nets(method: str, cache: dict) -> tuple[MapNets | None, str]:

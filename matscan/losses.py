@@ -65,9 +65,12 @@ def cosine_loss(pred: Tensor, target: Tensor) -> Tensor:
     return 1 - (pred * target).sum(dim=1).mean()
 
 
-def novel_lights(batch: int, count: int, reference_distance_mm: float, camera_mm, g: torch.Generator) -> LightSet:
+def novel_lights(
+    batch: int, count: int, reference_distance_mm: float, camera_mm, g: torch.Generator, camera_w: float = 1.0
+) -> LightSet:
     """``count`` random isotropic point lights per batch element over the sample:
-    directions uniform over the hemisphere above 10° elevation, distance R to 2R."""
+    directions uniform over the hemisphere above 10° elevation, distance R to 2R.
+    ``camera_mm`` and ``camera_w`` as for :class:`LightSet` (w 0: orthographic)."""
     u = torch.rand(batch, count, generator=g)
     phi = 2 * math.pi * torch.rand(batch, count, generator=g)
     z = math.sin(math.radians(10)) + (1 - math.sin(math.radians(10))) * u  # uniform in solid angle
@@ -75,7 +78,7 @@ def novel_lights(batch: int, count: int, reference_distance_mm: float, camera_mm
     dist = reference_distance_mm * (1 + torch.rand(batch, count, generator=g))
     pos = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1) * dist[..., None]
     cam = torch.as_tensor(camera_mm, dtype=torch.float32).expand(batch, count, 3)
-    return LightSet.points(pos, cam, reference_distance_mm)
+    return LightSet.points(pos, cam, reference_distance_mm, camera_w=camera_w)
 
 
 def rendering_loss(

@@ -165,11 +165,8 @@ def network_input(
 
 
 def lights_to(lights: LightSet, device: torch.device | str) -> LightSet:
-    """The same lights with their tensors on ``device`` (``LightSet.to`` takes a dtype only)."""
-    return LightSet(
-        *(getattr(lights, f).to(device) for f in ("position", "intensity", "axis", "exponent", "camera")),
-        lights.reference_distance_mm,
-    )
+    """The same lights with their tensors on ``device``."""
+    return lights.to(device)
 
 
 def photo_albedo(x: Tensor, n_lights: int, statistic: str = "median") -> Tensor:

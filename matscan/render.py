@@ -134,12 +134,13 @@ def render(
         t = t.to(dtype)
         return t if t.ndim == 3 else t.unsqueeze(0)
 
-    q = per_light(lights.position)
+    # homogeneous points (x, y, z, w): w = 0 for directional lights and orthographic cameras
+    q = per_light(torch.cat([lights.position, lights.w.unsqueeze(-1)], -1))
     intensity = per_light(lights.intensity)
     axis = per_light(lights.axis)
     exponent = per_light(lights.exponent.unsqueeze(-1))[..., 0]
-    cam = per_light(lights.camera)
-    if bool((lights.camera == lights.camera[..., :1, :]).all()):
+    cam = per_light(torch.cat([lights.camera, lights.camera_w.unsqueeze(-1)], -1))
+    if bool((cam == cam[:, :1]).all()):
         cam = cam[:, :1]  # one camera for every image: view directions are per pixel only
     scale = float(lights.reference_distance_mm) ** 2
     n_lights = q.shape[1]
@@ -193,7 +194,8 @@ def _shade(
 ) -> Tensor:
     """Radiance of P pixels under L lights, component by component.
 
-    Pixel inputs are (B, C, P), light inputs (B, L, k); returns (B, L, 3, P).
+    Pixel inputs are (B, C, P), light inputs (B, L, k); returns (B, L, 3, P). ``q`` and
+    ``cam`` are homogeneous points (B, L, 4): the vector toward them is xyz − w·p.
     Written with scalar planes (x, y, z separately) so that every operation is
     elementwise over (B, L, P), which is what lets torch.compile fuse it into one
     vectorised loop.
@@ -204,11 +206,12 @@ def _shade(
     def comp(t: Tensor, i: int) -> Tensor:  # (B, L, 3) -> (B, L, 1)
         return t[..., i : i + 1]
 
-    lx, ly, lz = comp(q, 0) - px, comp(q, 1) - py, comp(q, 2) - pz  # (B, L, P)
+    qw, cw = comp(q, 3), comp(cam, 3)
+    lx, ly, lz = comp(q, 0) - qw * px, comp(q, 1) - qw * py, comp(q, 2) - qw * pz  # (B, L, P)
     d2 = lx * lx + ly * ly + lz * lz
     inv = torch.rsqrt(d2)
     lx, ly, lz = lx * inv, ly * inv, lz * inv
-    vx, vy, vz = comp(cam, 0) - px, comp(cam, 1) - py, comp(cam, 2) - pz
+    vx, vy, vz = comp(cam, 0) - cw * px, comp(cam, 1) - cw * py, comp(cam, 2) - cw * pz
     inv = torch.rsqrt(vx * vx + vy * vy + vz * vz)
     vx, vy, vz = vx * inv, vy * inv, vz * inv
     hx, hy, hz = lx + vx, ly + vy, lz + vz
@@ -323,7 +326,7 @@ def render_maps(
 def flat_irradiance(lights: LightSet, points: Tensor) -> Tensor:
     """I_k (R/d)² max(a_k·(−l), 0)^m_k max(n·l, 0) at points (H, W, 3) of a flat surface
     (n = +z): (L, 3, H, W). A Lambertian pixel of albedo ρ images to ρ times this."""
-    lv = lights.position[:, None, None, :] - points[None]  # (L, H, W, 3)
+    lv = lights.position[:, None, None, :] - lights.w[:, None, None, None] * points[None]  # (L, H, W, 3)
     d2 = (lv * lv).sum(-1)
     l_dir = lv / d2.sqrt()[..., None]
     lobe = (-(l_dir * lights.axis[:, None, None, :]).sum(-1)).clamp_min(0) ** lights.exponent[:, None, None]

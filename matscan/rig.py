@@ -16,6 +16,7 @@ Built-in rigs:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -46,34 +47,84 @@ class Camera:
 
     Captured images are rectified to the sample field (shared/design.md), so the
     camera's only role in image formation is its centre, which sets the view
-    direction v at every surface point.
+    direction v at every surface point. An orthographic camera gives ``direction``
+    (unit, toward the camera) instead of ``position_mm``: v is then that direction at
+    every pixel (telecentric lenses; a camera far above a small object).
     """
 
-    position_mm: Vec3
+    position_mm: Vec3 | None = None
     up: Vec3 = (0.0, 1.0, 0.0)
+    direction: Vec3 | None = None
+
+    def __post_init__(self) -> None:
+        if (self.position_mm is None) == (self.direction is None):
+            raise MatscanError("camera: give either position_mm or direction (orthographic), not both")
+
+    @property
+    def orthographic(self) -> bool:
+        return self.direction is not None
+
+    def point(self, reference_distance_mm: float) -> Vec3:
+        """The camera as a point for the renderer: its centre, or for an orthographic
+        camera R·direction, a point in the view direction used with w = 0
+        (:class:`LightSet`)."""
+        if self.direction is not None:
+            return _scaled(self.direction, reference_distance_mm)
+        assert self.position_mm is not None
+        return self.position_mm
 
 
 @dataclass(frozen=True)
 class Light:
-    """A point light (an LED) with a cosine-power emission lobe.
+    """A point light (an LED) with a cosine-power emission lobe, or a directional light.
 
     ``intensity`` is RGB, relative: a white Lambertian sample lit head-on by an
     intensity-1 light at the rig's reference distance images to 1.0.
     ``exponent`` is the LED emission exponent m (0: isotropic).
     The LED axis points from ``position_mm`` toward ``aim_mm``.
+
+    A directional light gives ``direction`` (unit, toward the light) instead of
+    ``position_mm``: l is that direction at every pixel, with no falloff and no lobe
+    (shared/design.md, "Directional lights"), so a white Lambertian sample lit head-on
+    by an intensity-1 directional light also images to 1.0.
     """
 
-    position_mm: Vec3
+    position_mm: Vec3 | None = None
     intensity: Vec3 = (1.0, 1.0, 1.0)
     exponent: float = 1.0
     aim_mm: Vec3 = (0.0, 0.0, 0.0)
+    direction: Vec3 | None = None
+
+    def __post_init__(self) -> None:
+        if (self.position_mm is None) == (self.direction is None):
+            raise MatscanError("light: give either position_mm or direction, not both")
+
+    @property
+    def directional(self) -> bool:
+        return self.direction is not None
 
     @property
     def axis(self) -> Vec3:
-        """Unit LED axis a_k, from the LED toward its aim point."""
+        """Unit LED axis a_k, from the LED toward its aim point (−direction for a
+        directional light, which makes its lobe term 1)."""
+        if self.direction is not None:
+            return (-self.direction[0], -self.direction[1], -self.direction[2])
+        assert self.position_mm is not None
         d = [a - p for a, p in zip(self.aim_mm, self.position_mm, strict=True)]
         n = math.sqrt(sum(c * c for c in d))
         return (d[0] / n, d[1] / n, d[2] / n)
+
+    def point(self, reference_distance_mm: float) -> Vec3:
+        """The light as a point for the renderer: its position, or for a directional
+        light R·direction, used with w = 0 (:class:`LightSet`)."""
+        if self.direction is not None:
+            return _scaled(self.direction, reference_distance_mm)
+        assert self.position_mm is not None
+        return self.position_mm
+
+
+def _scaled(v: Vec3, s: float) -> Vec3:
+    return (v[0] * s, v[1] * s, v[2] * s)
 
 
 @dataclass(frozen=True)
@@ -138,7 +189,18 @@ class Rig:
         if indices is None:
             indices = range(len(self.lights))
         chosen = [self.lights[i] for i in indices]
-        return LightSet.from_lights(chosen, self.camera.position_mm, self.reference_distance_mm, dtype)
+        r = self.reference_distance_mm
+        return LightSet.from_lights(chosen, self.camera.point(r), r, dtype, self.camera_w)
+
+    @property
+    def camera_w(self) -> float:
+        """0 for an orthographic camera, 1 otherwise (:class:`LightSet`)."""
+        return 0.0 if self.camera.orthographic else 1.0
+
+    @property
+    def camera_point(self) -> Vec3:
+        """The camera as a point for the renderer (:meth:`Camera.point`)."""
+        return self.camera.point(self.reference_distance_mm)
 
 
 @dataclass(frozen=True)
@@ -153,7 +215,15 @@ class LightSet:
     axis           (…, L, 3)      unit LED axis a_k (from the LED toward the sample)
     exponent       (…, L)         emission exponent m_k
     camera         (…, L, 3)      camera centre c for that image, mm
+    w              (…, L)         1 for a point light, 0 for a directional one
+    camera_w       (…, L)         1 for a camera centre, 0 for an orthographic camera
     =============  =============  ==========================================
+
+    Lights and cameras are points in homogeneous coordinates: the vector toward the
+    light from a surface point p is q − w·p. A directional light is stored as
+    q = R·direction with w = 0 (and axis = −direction), so that l = direction, the
+    falloff (R/|q|)² is exactly 1 and the lobe term is 1, everywhere in the field; an
+    orthographic camera likewise. Every consumer computes geometry with ``w``.
 
     ``reference_distance_mm`` is R of the image formation model.
     """
@@ -164,9 +234,24 @@ class LightSet:
     exponent: Tensor
     camera: Tensor
     reference_distance_mm: float
+    w: Tensor = None  # type: ignore[assignment]  # filled with ones when not given
+    camera_w: Tensor = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        shape = self.position.shape[:-1]
+        for name in ("w", "camera_w"):
+            value = getattr(self, name)
+            if value is None:
+                value = torch.ones(shape, dtype=self.position.dtype, device=self.position.device)
+            object.__setattr__(self, name, value.to(self.position.dtype).expand(shape))
 
     def __len__(self) -> int:
         return self.position.shape[-2]
+
+    @property
+    def directional(self) -> bool:
+        """Whether any light is directional or any camera orthographic."""
+        return bool((self.w == 0).any()) or bool((self.camera_w == 0).any())
 
     @staticmethod
     def from_lights(
@@ -174,18 +259,23 @@ class LightSet:
         camera_mm: Vec3 | Sequence[Vec3],
         reference_distance_mm: float,
         dtype: torch.dtype = torch.float32,
+        camera_w: float = 1.0,
     ) -> LightSet:
-        """Build from :class:`Light` objects and one camera centre (or one per light)."""
+        """Build from :class:`Light` objects and one camera point (or one per light);
+        ``camera_w`` 0 makes the camera orthographic (``camera_mm`` = R·direction)."""
         cam = torch.tensor(camera_mm, dtype=dtype)
         if cam.ndim == 1:
             cam = cam.expand(len(lights), 3)
+        r = float(reference_distance_mm)
         return LightSet(
-            position=torch.tensor([lt.position_mm for lt in lights], dtype=dtype).reshape(-1, 3),
+            position=torch.tensor([lt.point(r) for lt in lights], dtype=dtype).reshape(-1, 3),
             intensity=torch.tensor([lt.intensity for lt in lights], dtype=dtype).reshape(-1, 3),
             axis=torch.tensor([lt.axis for lt in lights], dtype=dtype).reshape(-1, 3),
-            exponent=torch.tensor([lt.exponent for lt in lights], dtype=dtype),
+            exponent=torch.tensor([0.0 if lt.directional else lt.exponent for lt in lights], dtype=dtype),
             camera=cam.contiguous(),
-            reference_distance_mm=float(reference_distance_mm),
+            reference_distance_mm=r,
+            w=torch.tensor([0.0 if lt.directional else 1.0 for lt in lights], dtype=dtype),
+            camera_w=torch.full((len(lights),), float(camera_w), dtype=dtype),
         )
 
     @staticmethod
@@ -195,6 +285,7 @@ class LightSet:
         reference_distance_mm: float,
         intensity: float | Tensor = 1.0,
         exponent: float = 0.0,
+        camera_w: float = 1.0,
     ) -> LightSet:
         """Isotropic (m = 0 by default) point lights aimed at the origin, e.g. novel lights.
 
@@ -211,29 +302,48 @@ class LightSet:
             exponent=torch.full(pos.shape[:-1], float(exponent)),
             camera=cam,
             reference_distance_mm=float(reference_distance_mm),
+            camera_w=torch.full(pos.shape[:-1], float(camera_w)),
         )
 
-    def to(self, dtype: torch.dtype) -> LightSet:
-        """The same lights with tensors of another float dtype."""
+    def _map(self, fn) -> LightSet:
         return LightSet(
-            self.position.to(dtype),
-            self.intensity.to(dtype),
-            self.axis.to(dtype),
-            self.exponent.to(dtype),
-            self.camera.to(dtype),
+            fn(self.position, 2),
+            fn(self.intensity, 2),
+            fn(self.axis, 2),
+            fn(self.exponent, 1),
+            fn(self.camera, 2),
             self.reference_distance_mm,
+            fn(self.w, 1),
+            fn(self.camera_w, 1),
         )
+
+    def to(self, dtype_or_device: torch.dtype | torch.device | str) -> LightSet:
+        """The same lights with tensors of another float dtype, or on another device."""
+        return self._map(lambda t, _: t.to(dtype_or_device))
 
     def select(self, indices: Sequence[int]) -> LightSet:
         """A subset of the entries (along the light dimension)."""
         idx = torch.as_tensor(list(indices), dtype=torch.long)
+        return self._map(lambda t, k: t.index_select(-k, idx.to(t.device)))
+
+    def batch_item(self, i: int) -> LightSet:
+        """Element ``i`` of a leading batch dimension: (B, L, …) → (L, …)."""
+        return self._map(lambda t, _: t[i])
+
+    def with_intensity(self, intensity: Tensor) -> LightSet:
+        """The same geometry with other intensities (…, L, 3)."""
+        return dataclasses.replace(self, intensity=intensity)
+
+    @staticmethod
+    def cat(sets: Sequence[LightSet], dim: int = 0) -> LightSet:
+        """Sets of one reference distance joined along a leading dimension ``dim``."""
+        fields = ("position", "intensity", "axis", "exponent", "camera")
+        joined = {f: torch.cat([getattr(s, f) for s in sets], dim) for f in fields}
         return LightSet(
-            self.position.index_select(-2, idx),
-            self.intensity.index_select(-2, idx),
-            self.axis.index_select(-2, idx),
-            self.exponent.index_select(-1, idx),
-            self.camera.index_select(-2, idx),
-            self.reference_distance_mm,
+            **joined,
+            reference_distance_mm=sets[0].reference_distance_mm,
+            w=torch.cat([s.w for s in sets], dim),
+            camera_w=torch.cat([s.camera_w for s in sets], dim),
         )
 
 
@@ -349,8 +459,10 @@ _RIG_KEYS = {
     "per_image_geometry": False,
     "format": False,
 }
-_CAMERA_KEYS = {"position_mm": True, "up": False}
-_LIGHT_KEYS = {"position_mm": True, "intensity": False, "exponent": False, "aim_mm": False}
+_CAMERA_KEYS = {"position_mm": False, "direction": False, "up": False}
+_LIGHT_KEYS = {"position_mm": False, "direction": False, "intensity": False, "exponent": False, "aim_mm": False}
+#: A direction's length may differ from 1 by this much (it is then normalised).
+DIRECTION_TOLERANCE = 1e-3
 RIG_FORMAT = "matscan-rig/1"
 
 
@@ -383,14 +495,46 @@ def check_position(value: Any, where: str, what: str = "a light") -> Vec3:
     return (pos[0], pos[1], pos[2])
 
 
-def check_light(position: Vec3, intensity: Any, exponent: Any, aim: Any, where: str, sep: str = ".") -> Light:
-    """A :class:`Light` from checked JSON values (``where`` names the light's object)."""
+def check_direction(value: Any, where: str, what: str = "a light") -> Vec3:
+    """A unit vector above the sample plane (z > 0), 3 finite numbers whose length is 1
+    within ``DIRECTION_TOLERANCE`` (returned normalised)."""
+    d = check_vector(value, 3, where, -2.0, 2.0)
+    norm = math.sqrt(sum(c * c for c in d))
+    if abs(norm - 1) > DIRECTION_TOLERANCE:
+        raise MatscanError(f"{where}: {list(d)} has length {norm:.4g}; a direction must be a unit vector")
+    if d[2] <= 0:
+        raise MatscanError(f"{where}: z = {d[2]:g} points below the sample plane ({what} needs z > 0)")
+    return (d[0] / norm, d[1] / norm, d[2] / norm)
+
+
+def check_light(
+    position: Vec3 | None,
+    intensity: Any,
+    exponent: Any,
+    aim: Any,
+    where: str,
+    sep: str = ".",
+    direction: Vec3 | None = None,
+) -> Light:
+    """A :class:`Light` from checked JSON values (``where`` names the light's object);
+    a directional one where ``direction`` is given instead of ``position``."""
     inten = check_vector(intensity, 3, f"{where}{sep}intensity", 0.0, MAX_INTENSITY)
     m = check_number(exponent, f"{where}{sep}exponent", 0.0, MAX_EXPONENT)
     aim_mm = _vec(aim, 3, f"{where}{sep}aim_mm")
-    if math.dist(aim_mm, position) < MIN_AIM_DISTANCE_MM:
+    if position is not None and math.dist(aim_mm, position) < MIN_AIM_DISTANCE_MM:
         raise MatscanError(f"{where}{sep}aim_mm: equals the light's position; the axis is undefined")
-    return Light(position_mm=position, intensity=(inten[0], inten[1], inten[2]), exponent=m, aim_mm=aim_mm)
+    rgb = (inten[0], inten[1], inten[2])
+    return Light(position_mm=position, intensity=rgb, exponent=m, aim_mm=aim_mm, direction=direction)
+
+
+def _one_of(obj: Mapping[str, Any], where: str) -> str:
+    """Which of ``position_mm`` and ``direction`` an object gives (exactly one)."""
+    given = [k for k in ("position_mm", "direction") if k in obj]
+    if not given:
+        raise MatscanError(f"{where}: missing field 'position_mm' (a point) or 'direction' (a unit vector)")
+    if len(given) == 2:
+        raise MatscanError(f"{where}: give either position_mm (a point) or direction (a unit vector), not both")
+    return given[0]
 
 
 def _lights(raw: Any, where: str) -> tuple[Light, ...]:
@@ -398,9 +542,20 @@ def _lights(raw: Any, where: str) -> tuple[Light, ...]:
     for k, lt in enumerate(check_list(raw, f"{where}: lights", "lights")):
         lw = f"{where}: lights[{k}]"
         _check_keys(lt, _LIGHT_KEYS, lw)
-        pos = check_position(lt["position_mm"], f"{lw}.position_mm")
+        pos = direction = None
+        if _one_of(lt, lw) == "position_mm":
+            pos = check_position(lt["position_mm"], f"{lw}.position_mm")
+        else:
+            direction = check_direction(lt["direction"], f"{lw}.direction")
         lights.append(
-            check_light(pos, lt.get("intensity", [1, 1, 1]), lt.get("exponent", 1.0), lt.get("aim_mm", [0, 0, 0]), lw)
+            check_light(
+                pos,
+                lt.get("intensity", [1, 1, 1]),
+                lt.get("exponent", 1.0),
+                lt.get("aim_mm", [0, 0, 0]),
+                lw,
+                direction=direction,
+            )
         )
     return tuple(lights)
 
@@ -437,11 +592,15 @@ def rig_from_dict(data: Mapping[str, Any], where: str = "rig") -> Rig:
     ref = check_number(data["reference_distance_mm"], f"{where}: reference_distance_mm", high=MAX_MM, positive=True)
 
     cam = _check_keys(data["camera"], _CAMERA_KEYS, f"{where}: camera")
-    cam_pos = check_position(cam["position_mm"], f"{where}: camera.position_mm", "the camera")
     up = _vec(cam.get("up", [0, 1, 0]), 3, f"{where}: camera.up")
     if not any(up):
         raise MatscanError(f"{where}: camera.up: must not be the zero vector")
-    camera = Camera(position_mm=cam_pos, up=(up[0], up[1], up[2]))
+    if _one_of(cam, f"{where}: camera") == "position_mm":
+        cam_pos = check_position(cam["position_mm"], f"{where}: camera.position_mm", "the camera")
+        camera = Camera(position_mm=cam_pos, up=(up[0], up[1], up[2]))
+    else:
+        cam_dir = check_direction(cam["direction"], f"{where}: camera.direction", "the camera")
+        camera = Camera(direction=cam_dir, up=(up[0], up[1], up[2]))
 
     fld = _vec(data["field_mm"], 2, f"{where}: field_mm")
     if min(fld) <= 0:
@@ -466,24 +625,29 @@ def rig_from_dict(data: Mapping[str, Any], where: str = "rig") -> Rig:
 
 def rig_to_dict(rig: Rig) -> dict[str, Any]:
     """The JSON object of a rig (inverse of :func:`rig_from_dict`)."""
+    cam = rig.camera
+    camera = {"direction": list(cam.direction)} if cam.direction is not None else {"position_mm": list(cam.position_mm)}
     return {
         "format": RIG_FORMAT,
         "name": rig.name,
         "reference_distance_mm": rig.reference_distance_mm,
-        "camera": {"position_mm": list(rig.camera.position_mm), "up": list(rig.camera.up)},
+        "camera": {**camera, "up": list(cam.up)},
         "field_mm": list(rig.field_mm),
-        "lights": [
-            {
-                "position_mm": list(lt.position_mm),
-                "intensity": list(lt.intensity),
-                "exponent": lt.exponent,
-                "aim_mm": list(lt.aim_mm),
-            }
-            for lt in rig.lights
-        ],
+        "lights": [_light_dict(lt) for lt in rig.lights],
         "subsets": {k: list(v) for k, v in rig.subsets.items()},
         "backlight": rig.backlight,
         "per_image_geometry": rig.per_image_geometry,
+    }
+
+
+def _light_dict(lt: Light) -> dict[str, Any]:
+    if lt.direction is not None:
+        return {"direction": list(lt.direction), "intensity": list(lt.intensity)}
+    return {
+        "position_mm": list(lt.position_mm),
+        "intensity": list(lt.intensity),
+        "exponent": lt.exponent,
+        "aim_mm": list(lt.aim_mm),
     }
 
 

@@ -228,15 +228,12 @@ def sample_lights(indices: Tensor, cfg: TrainConfig, rig) -> LightSet:
             1,
             cfg.render_lights,
             rig.reference_distance_mm,
-            rig.camera.position_mm,
+            rig.camera_point,
             torch.Generator().manual_seed((cfg.seed * 1_000_003 + int(i)) * 7 + 3),
         )
         for i in indices
     ]
-    return LightSet(
-        *(torch.cat([getattr(ls, f) for ls in sets]) for f in ("position", "intensity", "axis", "exponent", "camera")),
-        rig.reference_distance_mm,
-    )
+    return LightSet.cat(sets)
 
 
 def _groups(nets: MapNets) -> dict[str, list[Tensor]]:

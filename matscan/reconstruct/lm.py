@@ -89,16 +89,16 @@ class Geometry:
 def geometry(lights: LightSet, points: Tensor) -> Geometry:
     """:class:`Geometry` of ``points`` (P, 3) in mm."""
     p = points.T  # (3, P)
-    lv = lights.position[:, :, None] - p[None]  # (K, 3, P)
+    lv = lights.position[:, :, None] - lights.w[:, None, None] * p[None]  # (K, 3, P); w = 0: directional
     d2 = (lv * lv).sum(1)
     l = lv * torch.rsqrt(d2)[:, None]
     lobe = (-(lights.axis[:, :, None] * l).sum(1)).clamp_min(1e-30) ** lights.exponent[:, None]
     e = lights.intensity[:, :, None] * ((lights.reference_distance_mm**2 / d2) * lobe)[:, None]
-    cams = lights.camera
-    if bool((cams == cams[:1]).all()):
-        cv = (cams[0][:, None] - p)[None]
+    cams, cw = lights.camera, lights.camera_w
+    if bool((cams == cams[:1]).all()) and bool((cw == cw[:1]).all()):
+        cv = (cams[0][:, None] - cw[0] * p)[None]
     else:
-        cv = cams[:, :, None] - p[None]
+        cv = cams[:, :, None] - cw[:, None, None] * p[None]
     v = cv * torch.rsqrt((cv * cv).sum(1, keepdim=True))
     h = l + v
     h = h * torch.rsqrt((h * h).sum(1, keepdim=True).clamp_min(1e-20))

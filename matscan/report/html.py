@@ -168,14 +168,11 @@ def write_report(
         numbers["leave-out validation"] = record["validation"]
     numbers_html = "\n".join(f"<tr><th>{e(k)}</th><td>{e(json.dumps(v))}</td></tr>" for k, v in numbers.items())
     warnings = "".join(f"<li>{e(w)}</li>" for w in record.get("warnings", [])) or "<li>none</li>"
-    cam = (
-        capture.rig.camera.position_mm
-        if not capture.rig.per_image_geometry
-        else tuple(capture.lights.camera[0].tolist())
-    )
+    cam = capture.rig.camera_point if not capture.rig.per_image_geometry else tuple(capture.lights.camera[0].tolist())
     viewer_cfg = {
         "field_mm": list(capture.field_mm),
         "camera_mm": list(cam),
+        "camera_w": capture.rig.camera_w,
         "R": capture.rig.reference_distance_mm,
         "textures": _viewer_textures(maps),
     }

@@ -2,7 +2,7 @@
 // The fragment shader is shared/design.md's image formation with the paper's Eq. 1
 // (GGX, uncorrelated Smith, Schlick), the same model the maps were fitted with.
 // Emission is added to the reflected light and alpha composites the sample over a checkerboard.
-// Reads its data from the page: window.MATSCAN_VIEWER = {field_mm, camera_mm, R, textures: {...}}.
+// Reads its data from the page: window.MATSCAN_VIEWER = {field_mm, camera_mm, camera_w, R, textures: {...}}.
 // With ?stats=1 in the page's address it also writes the canvas's mean and spread into the DOM
 // (for tests: reading the canvas back stalls the GPU, so a normal view never does).
 (function () {
@@ -33,6 +33,7 @@
     "uniform vec2 u_field;      // mm (width, height)",
     "uniform vec3 u_light;      // mm",
     "uniform vec3 u_camera;     // mm",
+    "uniform float u_camera_w;  // 1: a camera centre; 0: orthographic, u_camera is R * its direction",
     "uniform float u_R;         // reference distance, mm",
     "uniform float u_exposure;",
     "const float PI = 3.14159265358979;",
@@ -51,7 +52,7 @@
     "  // pixel centre in the sample frame: x grows with columns, y with -rows",
     "  vec3 p = vec3((v_uv.x - 0.5) * u_field.x, (0.5 - v_uv.y) * u_field.y, 0.0);",
     "  vec3 lv = u_light - p; float d = length(lv); vec3 l = lv / d;",
-    "  vec3 v = normalize(u_camera - p);",
+    "  vec3 v = normalize(u_camera - u_camera_w * p);",
     "  vec3 h = normalize(l + v);",
     "  float nl = dot(n, l), nv = dot(n, v);",
     "  float nh = max(dot(n, h), 0.0), vh = clamp(dot(v, h), 0.0, 1.0);",
@@ -131,6 +132,7 @@
     gl.uniform2f(gl.getUniformLocation(prog, "u_field"), cfg.field_mm[0], cfg.field_mm[1]);
     gl.uniform3f(gl.getUniformLocation(prog, "u_light"), light[0], light[1], light[2]);
     gl.uniform3f(gl.getUniformLocation(prog, "u_camera"), cfg.camera_mm[0], cfg.camera_mm[1], cfg.camera_mm[2]);
+    gl.uniform1f(gl.getUniformLocation(prog, "u_camera_w"), cfg.camera_w === undefined ? 1.0 : cfg.camera_w);
     gl.uniform1f(gl.getUniformLocation(prog, "u_R"), cfg.R);
     gl.uniform1f(gl.getUniformLocation(prog, "u_exposure"), exposure ? Number(exposure.value) : 1.0);
     gl.drawArrays(gl.TRIANGLE_STRIP, 0, 4);
