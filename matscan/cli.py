@@ -156,7 +156,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         )
         + "; "
         f"re-render RMSE {rec['rerender_rmse']:.4f}"
-        + (f" (left-out photos {rec['validation']['rmse_left_out']:.4f})" if "validation" in rec else "")
+        + (_validation_summary(rec["validation"]) if "validation" in rec else "")
         + f"; {rec['timings_s']['total_s']:.1f} s"
     )
 
@@ -253,6 +253,13 @@ def cmd_render(args: argparse.Namespace) -> str:
         return _render(args, maps_path, pos, out, t0)
 
 
+def _validation_summary(val: dict) -> str:
+    text = f" (left-out photos {val['rmse_left_out']:.4f}, PSNR {val['psnr_left_out']:.2f} dB"
+    if "hsh" in val:
+        text += f"; HSH {val['hsh']['psnr_left_out']:.2f} dB"
+    return text + ")"
+
+
 def _render(args: argparse.Namespace, maps_path: Path, pos: tuple[float, ...], out: Path, t0: float) -> str:
     import numpy as np
 
@@ -308,6 +315,67 @@ def _sheet(args: argparse.Namespace, source: Path) -> str:
     columns = args.columns or (8 if len(tiles) > 16 else None)
     save_sheet(args.out, contact_sheet(tiles, columns=columns))
     return f"sheet: wrote {args.out} ({len(tiles)} tiles)"
+
+
+def cmd_rig_from_lp(args: argparse.Namespace) -> str:
+    from matscan.atomic import write_text
+    from matscan.capture.rti import RTI_FIELD_WIDTH_MM, read_lp, rig_from_lp
+    from matscan.jsonfile import dumps
+    from matscan.outputs import claim_output
+    from matscan.rig import rig_to_dict
+
+    field = _vector(args.field_mm, 2, "--field-mm") if args.field_mm else (RTI_FIELD_WIDTH_MM, RTI_FIELD_WIDTH_MM)
+    if min(field) <= 0:
+        raise MatscanError(f"--field-mm: {args.field_mm!r} must be two positive sizes (width, height) in mm")
+    with claim_output(args.out, "rig from-lp", [args.lp], kind="file", overwrite=args.overwrite):
+        lights = read_lp(args.lp, args.y)
+        for warning in lights.warnings:
+            print(f"matscan: warning: {warning}", file=sys.stderr)
+        rig = rig_from_lp(lights, field, name=Path(args.lp).stem)
+        write_text(args.out, dumps(rig_to_dict(rig), str(args.out)))
+    return (
+        f"rig from-lp: wrote {args.out} ({len(rig.lights)} directional lights, orthographic camera, "
+        f"field {field[0]:g}×{field[1]:g} mm, .lp y {args.y})"
+    )
+
+
+def cmd_rig_to_lp(args: argparse.Namespace) -> str:
+    from matscan.atomic import write_text
+    from matscan.capture.rti import lp_text
+    from matscan.outputs import claim_output
+    from matscan.rig import resolve_rig
+
+    rig = resolve_rig(args.rig)
+    inputs = [args.rig] if str(args.rig).endswith(".json") else []
+    with claim_output(args.out, "rig to-lp", inputs, kind="file", overwrite=args.overwrite):
+        write_text(args.out, lp_text(rig, y=args.y))
+    kinds = sum(lt.directional for lt in rig.lights)
+    note = "" if kinds == len(rig.lights) else " (point lights written as directions from the field's centre)"
+    return f"rig to-lp: wrote {args.out} ({len(rig.lights)} lights{note})"
+
+
+def cmd_import_rti(args: argparse.Namespace) -> str:
+    from matscan.capture.rti import import_rti
+
+    out, warnings = import_rti(
+        args.folder,
+        args.out,
+        lp=args.lp,
+        y=args.y,
+        field_width_mm=args.field_width_mm,
+        overwrite=args.overwrite,
+        overwrite_any=args.overwrite_any,
+    )
+    for warning in warnings:
+        print(f"matscan: warning: {warning}", file=sys.stderr)
+    from matscan.capture import load_capture
+
+    cap = load_capture(out)
+    h, w = cap.size
+    return (
+        f"import-rti: wrote {out} ({len(cap.files)} photos of {w}×{h} px, directional lights, "
+        f"field {cap.field_mm[0]:g}×{cap.field_mm[1]:g} mm, .lp y {args.y})"
+    )
 
 
 def cmd_synth(args: argparse.Namespace) -> str:
@@ -560,6 +628,47 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--minutes", type=positive_float, default=None, help="stop after this much wall time")
     p.set_defaults(func=cmd_train)
+
+    from matscan.capture.rti import LP_Y, LP_Y_DEFAULT, RTI_FIELD_WIDTH_MM
+
+    y_help = (
+        f"which way the .lp file's +y points in the image: up (toward row 0) or down (default {LP_Y_DEFAULT}; "
+        "see docs/rti.md)"
+    )
+    p = sub.add_parser("rig", help="rig files: from and to RTI .lp light files")
+    rig_sub = p.add_subparsers(dest="rig_command", required=True)
+    q = rig_sub.add_parser("from-lp", help="a rig of directional lights from an RTI .lp file")
+    q.add_argument("lp", metavar="LP", help=".lp light file")
+    q.add_argument("--out", required=True, help="rig .json to write")
+    q.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)
+    q.add_argument(
+        "--field-mm",
+        default=None,
+        metavar="W,H",
+        help=f"sample field the photos cover, mm (default {RTI_FIELD_WIDTH_MM:g},{RTI_FIELD_WIDTH_MM:g})",
+    )
+    q.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    q.set_defaults(func=cmd_rig_from_lp)
+    q = rig_sub.add_parser("to-lp", help="an RTI .lp file of a rig's lights (directions from the field's centre)")
+    q.add_argument("rig", metavar="RIG", help="built-in rig name or rig .json file")
+    q.add_argument("--out", required=True, help=".lp file to write")
+    q.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)
+    q.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    q.set_defaults(func=cmd_rig_to_lp)
+
+    p = sub.add_parser("import-rti", help="a capture folder from an RTI folder (photos and an .lp light file)")
+    p.add_argument("folder", metavar="FOLDER", help="RTI folder: photos and one .lp file")
+    p.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to write")
+    p.add_argument("--lp", default=None, help="the .lp file, when the folder has none or several")
+    p.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)
+    p.add_argument(
+        "--field-width-mm",
+        type=positive_float,
+        default=None,
+        help=f"width of the field the photos cover, mm (default {RTI_FIELD_WIDTH_MM:g}; the height follows)",
+    )
+    _overwrite_folder(p)
+    p.set_defaults(func=cmd_import_rti)
 
     p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")
     p.add_argument("folder", metavar="FOLDER", help="capture or map set folder (or @sample)")

@@ -18,16 +18,21 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from matscan import __version__
 from matscan.capture import Capture, load_capture
+from matscan.color import linear_to_srgb
 from matscan.errors import MatscanError
+from matscan.hsh import HSH_TERMS, fit_hsh, relight_hsh
 from matscan.jsonfile import dumps
+from matscan.losses import ssim
 from matscan.mapset import CONVENTIONS, MapSet, write_maps
 from matscan.nets import MapNets
 from matscan.outputs import RECORD
@@ -35,6 +40,7 @@ from matscan.reconstruct.lm import SolverConfig
 from matscan.reconstruct.networks import predict_maps
 from matscan.reconstruct.solver import flat_start, refine_maps, rerender_error, solve_maps
 from matscan.reconstruct.surface import alpha_from_backlight, height_from_normals
+from matscan.render import render_maps
 
 REFINE_CHOICES = ("auto", "on", "off")
 SOLVERS = ("lm", "adam")
@@ -212,12 +218,30 @@ def choose_by_evidence(capture: Capture, cfg: ReconstructConfig, nets: MapNets) 
     return best, {"chosen": best, "left_out": left_out, "folds": len(folds), "rmse_left_out": scores}
 
 
+def networks_misfit(nets: MapNets, capture: Capture) -> str | None:
+    """Why the networks cannot read this capture (None when they can): they take one
+    fixed rig's light slots, so not per-image geometry nor another number of lights."""
+    if capture.rig.per_image_geometry:
+        return f"rig {capture.rig.name}: the networks do not apply to per-image geometry"
+    if nets.n_lights != len(capture.rig.lights):
+        return (
+            f"rig {capture.rig.name}: the networks are trained for {nets.n_lights} light slots, "
+            f"the rig has {len(capture.rig.lights)}"
+        )
+    return None
+
+
 def reconstruct_capture(
     capture: Capture, cfg: ReconstructConfig = ReconstructConfig(), nets: MapNets | None = None, progress: bool = False
 ) -> Result:
-    """Maps from a loaded capture (no files written)."""
+    """Maps from a loaded capture (no files written). Networks that do not fit the
+    capture's rig (:func:`networks_misfit`) are set aside with a warning: the solver
+    then starts from flat maps."""
     n = len(capture.files)
-    auto = cfg.refine == "auto" and cfg.solver == "lm" and nets is not None and not capture.rig.per_image_geometry
+    misfit = networks_misfit(nets, capture) if nets is not None else None
+    if misfit is not None:
+        nets = None
+    auto = cfg.refine == "auto" and cfg.solver == "lm" and nets is not None
     if auto and n < EVIDENCE_PHOTOS[1]:
         t0 = time.perf_counter()
         if n >= EVIDENCE_PHOTOS[0]:
@@ -232,18 +256,15 @@ def reconstruct_capture(
         return result
     timings: dict[str, float] = {}
     warnings = check_capture(capture, cfg)
+    if misfit is not None:
+        warnings.append(f"{misfit}; starting refinement from flat maps")
     t0 = time.perf_counter()
-    if nets is not None and not capture.rig.per_image_geometry:
+    if nets is not None:
         start = predict_maps(nets, capture, cfg.tile, cfg.overlap, progress)
     else:
-        if nets is not None:
-            warnings.append(
-                f"rig {capture.rig.name}: the networks do not apply to per-image geometry; "
-                "starting refinement from flat maps"
-            )
         start = flat_start(capture)
     timings["networks_s"] = time.perf_counter() - t0
-    used_nets = nets is not None and not capture.rig.per_image_geometry
+    used_nets = nets is not None
     refine = cfg.refine == "on" or (
         cfg.refine == "auto" and (not used_nets or len(capture.files) >= REFINE_AUTO_PHOTOS[cfg.solver])
     )
@@ -310,11 +331,58 @@ def leave_out_validation(capture: Capture, count: int, cfg: ReconstructConfig, n
     left = held_out_positions(n, count)
     kept = [i for i in range(n) if i not in left]
     res = reconstruct_capture(subset_capture(capture, kept), cfg, nets)
-    return {
+    record: dict[str, Any] = {
         "left_out": [capture.files[i] for i in left],
         "rmse_left_out": rerender_error(res.maps, capture, left, res.intensity_scale),
         "rmse_fitted": rerender_error(res.maps, capture, kept, res.intensity_scale),
     }
+    record.update(
+        photo_scores(
+            capture,
+            left,
+            lambda i: display(render_maps(res.maps, capture.lights.select([i]), capture.field_mm, res.intensity_scale)),
+        )
+    )
+    if not capture.rig.per_image_geometry and len(kept) >= HSH_TERMS:
+        record["hsh"] = hsh_validation(capture, kept, left)
+    return record
+
+
+def display(linear: Tensor) -> Tensor:
+    """Linear radiance as the photos display it: clipped to [0, 1], sRGB-encoded (the
+    domain of the RTI field's PSNR and SSIM, and of its curve fits)."""
+    return linear_to_srgb(linear.clamp(0, 1))
+
+
+def photo_scores(capture: Capture, positions: list[int], predict: Callable[[int], Tensor]) -> dict[str, float]:
+    """PSNR (dB) and SSIM of predicted photos against the captured ones at ``positions``,
+    in the display domain (:func:`display`), every pixel counted, as RTI papers score
+    relighting. ``predict(i)`` gives the display-domain image (1, 3, H, W) of photo i."""
+    se, count, ssims = 0.0, 0, []
+    for i in positions:
+        truth = display(capture.linear([i]))
+        with torch.no_grad():
+            pred = predict(i)
+        se += float((pred - truth).square().sum())
+        count += truth.numel()
+        ssims.append(float(ssim(pred, truth)))
+    mse = se / count
+    psnr = 10 * math.log10(1 / max(mse, 1e-12))
+    return {"psnr_left_out": round(psnr, 3), "ssim_left_out": round(sum(ssims) / len(ssims), 4)}
+
+
+def light_directions(lights) -> Tensor:
+    """Unit directions (K, 3) toward each light from the field's centre (for a
+    directional light, its direction)."""
+    return lights.position / lights.position.norm(dim=-1, keepdim=True)
+
+
+def hsh_validation(capture: Capture, kept: list[int], left: list[int]) -> dict[str, float]:
+    """The RTI field's baseline on the same photos: an order-2 HSH fit (:mod:`matscan.hsh`)
+    to the kept photos in the display domain, scored on the left-out ones."""
+    coefficients = fit_hsh(display(capture.linear(kept)), light_directions(capture.lights.select(kept)))
+    directions = light_directions(capture.lights)
+    return photo_scores(capture, left, lambda i: relight_hsh(coefficients, directions[i : i + 1]))
 
 
 def reconstruct(
