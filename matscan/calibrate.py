@@ -442,18 +442,21 @@ def _colour_matrix(value: Any, where: str) -> Tensor:
     return torch.tensor(rows, dtype=torch.float32)
 
 
-def _scales(value: Any, where: str, rig: Rig) -> dict[int, float]:
-    """Per-light scales: finite, positive, within ``SCALE_LIMITS``."""
+def _scales(value: Any, where: str, rig: Rig) -> dict[int, tuple[float, float, float]]:
+    """Per-light scales, each one number or an RGB triple (self-calibration writes
+    those): finite, positive, within ``SCALE_LIMITS``; returned as RGB triples."""
     scales = {}
     for k, s in _light_keyed(value, where, rig).items():
         field = f"{where}['{k}']"
-        s = check_number(s, field)
-        if s <= 0:
-            raise MatscanError(
-                f"{field}: light {k} has scale {s:g}; a scale must be positive (photo = scale × model): recalibrate"
-            )
-        check_number(s, field, *SCALE_LIMITS)
-        scales[k] = s
+        values = check_vector(s, 3, field) if isinstance(s, (list, tuple)) else (check_number(s, field),) * 3
+        for v in values:
+            if v <= 0:
+                raise MatscanError(
+                    f"{field}: light {k} has scale {v:g}; a scale must be positive (photo = scale × model): "
+                    "recalibrate"
+                )
+            check_number(v, field, *SCALE_LIMITS)
+        scales[k] = (values[0], values[1], values[2])
     return scales
 
 
@@ -488,7 +491,7 @@ def _flat_files(value: Any, where: str, capture: Capture) -> dict[int, Path]:
     return files
 
 
-def _coverage_warning(scales: dict[int, float], capture: Capture, name: str) -> list[str]:
+def _coverage_warning(scales: dict[int, Any], capture: Capture, name: str) -> list[str]:
     """A warning naming the capture's lights that have no scale."""
     missing = sorted({k for k in capture.light_indices if k is not None and k not in scales})
     if not missing:
@@ -535,13 +538,14 @@ def apply_calibration(capture: Capture) -> Capture:
     matrix = _colour_matrix(cal["colour_matrix"], f"{prefix}colour_matrix") if "colour_matrix" in cal else None
     scales = _scales(cal["light_scales"], f"{prefix}light_scales", capture.rig) if "light_scales" in cal else {}
     flats = _flat_files(cal["flat_fields"], f"{prefix}flat_fields", capture) if "flat_fields" in cal else {}
-    warnings = check_scales({str(k): s for k, s in scales.items()}, name)
+    warnings = check_scales({str(k): sum(s) / 3 for k, s in scales.items()}, name)
     if "light_scales" in cal:
         warnings += _coverage_warning(scales, capture, name)
 
     gain = torch.tensor(
-        [scales.get(k, 1.0) if k is not None else 1.0 for k in capture.light_indices], dtype=torch.float32
-    )
+        [scales.get(k, (1.0,) * 3) if k is not None else (1.0,) * 3 for k in capture.light_indices],
+        dtype=torch.float32,
+    ).reshape(-1, 3)
     flat_of = {k: _flat_field(path, capture.size).half() for k, path in flats.items()}
     correction = Correction(
         matrix, gain, tuple(flat_of.get(k) if k is not None else None for k in capture.light_indices)

@@ -134,6 +134,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         exr=args.exr,
         directx_normals=args.directx_normals,
         validate=args.validate,
+        self_calibrate=args.self_calibrate,
     )
     rec = reconstruct(
         _capture_arg(args.capture),
@@ -508,6 +509,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=positive_int, default=150, help="adam refinement steps per tile (default 150)")
     p.add_argument("--tile", type=_number(int, 16), default=512, help="network tile size in pixels (default 512)")
     p.add_argument("--emissive", action="store_true", help="also fit an emissive map (fluorescent inks)")
+    p.add_argument(
+        "--self-calibrate",
+        dest="self_calibrate",
+        action="store_true",
+        help="estimate each light's RGB intensity with the maps, from the photos alone (8 photos or more); "
+        "writes self_calibration.json, a calibration later captures can name",
+    )
     p.add_argument(
         "--validate",
         type=non_negative_int,

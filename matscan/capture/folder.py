@@ -80,7 +80,7 @@ class Correction:
     capture folder): linear = max(0, M · photo / gain / flat)."""
 
     matrix: Tensor | None  # (3, 3) colour matrix, or None
-    gain: Tensor  # (N,) each photo is divided by its light's scale
+    gain: Tensor  # (N, 3) each photo is divided by its light's scale, per channel
     flats: tuple[Tensor | None, ...]  # per photo a (1|3, H, W) float16 flat field, or None
 
     def select(self, positions: Sequence[int]) -> Correction:
@@ -92,7 +92,7 @@ class Correction:
         """Correct photos (n, 3, h, w), the region ``rows``/``cols`` of photos ``index``."""
         if self.matrix is not None:
             photos = torch.einsum("ij,njhw->nihw", self.matrix, photos)
-        photos = photos / self.gain[index].view(-1, 1, 1, 1)
+        photos = photos / self.gain[index].view(-1, 3, 1, 1)
         for j, i in enumerate(index):
             flat = self.flats[i]
             if flat is not None:

@@ -43,6 +43,8 @@ from matscan.reconstruct.surface import alpha_from_backlight, height_from_normal
 from matscan.render import render_maps
 
 REFINE_CHOICES = ("auto", "on", "off")
+#: The self-calibration's light scales, as a calibration file later captures can name.
+SELF_CALIBRATION = "self_calibration.json"
 SOLVERS = ("lm", "adam")
 
 
@@ -64,6 +66,7 @@ class ReconstructConfig:
     saturation_warn: float = 0.05
     emissive: bool = False  # also fit an emissive map (light the sample gives off under any LED)
     validate: int = 0  # leave this many photos out, reconstruct, and report their re-rendering error
+    self_calibrate: bool = False  # estimate each light's RGB intensity with the maps (selfcal)
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
 
@@ -114,6 +117,8 @@ class Result:
     refined: bool = False
     confidence: dict[str, Tensor] = field(default_factory=dict)
     choice: dict[str, Any] | None = None  # what ``--refine auto`` compared, when it compared
+    light_gains: Tensor | None = None  # (N, 3) per-photo gains found by self-calibration
+    self_calibration: dict[str, Any] | None = None  # its record
 
 
 #: Prior strength of the ``lm`` solver when it starts from flat maps (no networks):
@@ -237,6 +242,16 @@ def reconstruct_capture(
     """Maps from a loaded capture (no files written). Networks that do not fit the
     capture's rig (:func:`networks_misfit`) are set aside with a warning: the solver
     then starts from flat maps."""
+    if cfg.self_calibrate:
+        from matscan.reconstruct.selfcal import estimate_gains, with_gains
+
+        t0 = time.perf_counter()
+        gains, record = estimate_gains(capture, cfg)
+        seconds = time.perf_counter() - t0
+        result = reconstruct_capture(with_gains(capture, gains), replace(cfg, self_calibrate=False), nets, progress)
+        result.light_gains, result.self_calibration = gains, record
+        result.timings["self_calibration_s"] = seconds
+        return result
     n = len(capture.files)
     misfit = networks_misfit(nets, capture) if nets is not None else None
     if misfit is not None:
@@ -425,6 +440,10 @@ def reconstruct(
             model_name, networks = os.path.relpath(file, claim.path), training_record(model_meta)
         validation = leave_out_validation(capture, cfg.validate, cfg, nets) if cfg.validate else None
         res = reconstruct_capture(capture, cfg, nets, progress)
+        if res.light_gains is not None:  # the photos as the fit saw them, for every number below
+            from matscan.reconstruct.selfcal import with_gains
+
+            capture = with_gains(capture, res.light_gains)
         from matscan.report.html import per_light_rows, write_report
 
         # the report's per-photo re-renderings give the overall error too: one rendering pass
@@ -452,6 +471,8 @@ def reconstruct(
         }
         if validation is not None:
             record["validation"] = validation
+        if res.self_calibration is not None:
+            record["self_calibration"] = {**res.self_calibration, "file": SELF_CALIBRATION}
         dumps(record, RECORD)  # a non-finite number is refused here, before any file is written
         with claim.folder() as tmp:
             write_maps(tmp, res.maps)
@@ -459,6 +480,12 @@ def reconstruct(
 
             record["exports"] = export_all(tmp, res.maps, capture.field_mm, cfg.exr, cfg.directx_normals)
             record["confidence"] = write_confidence(tmp, res.confidence)
+            if res.light_gains is not None:
+                from matscan.reconstruct.selfcal import calibration_document
+
+                doc = calibration_document(capture, res.light_gains)
+                (tmp / SELF_CALIBRATION).write_text(dumps(doc, SELF_CALIBRATION), encoding="utf-8")
+                record["exports"].append(SELF_CALIBRATION)
             write_report(
                 tmp / "report.html", capture, res.maps, record, res.intensity_scale, res.confidence, light_rows
             )

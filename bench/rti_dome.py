@@ -1,0 +1,128 @@
+"""A simulated RTI dome: matscan's solver against the field's HSH fit, on materials unlike
+the training set.
+
+The dome: 49 directional lights (12 on each ring at 10°, 30°, 50° and 70° elevation, one
+at the zenith) and an orthographic camera, as RTI domes are described by their .lp
+files; 20 test lights between them (5 on each ring at 20°, 40°, 60°, 80°, azimuths
+offset). Each material (the artist-style sets and the sets built from texture photos:
+``matscan evaluate`` "photos" and "artist") is photographed under the 49 lights (8-bit
+sRGB, read noise 0.002) and reconstructed by the solver alone (no networks: they take
+dome24's slots); HSH (order 2, nine coefficients per pixel and channel) is fitted to the
+same photos. Both then predict the 20 test photos, which neither saw.
+
+Printed per material: PSNR (dB) and SSIM of the test photos (sRGB, clipped) for HSH and
+the solver, the solver's normal error (mean angle, degrees) and its map errors (RMSE of
+diffuse, specular, roughness); then the means.
+
+Run by hand: .venv/bin/python bench/rti_dome.py [SIZE]   (default 128)
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import torch
+
+from matscan.capture import Capture
+from matscan.capture.virtual import CameraModel, simulate_images
+from matscan.color import linear_to_srgb
+from matscan.hsh import fit_hsh, relight_hsh
+from matscan.losses import ssim
+from matscan.materials.artist import ARTIST_NAMES, artist_material
+from matscan.materials.photos import TINTS, photo_material
+from matscan.reconstruct import ReconstructConfig, reconstruct_capture
+from matscan.render import render_maps
+from matscan.rig import Camera, Light, Rig
+
+
+def ring(elevations, per_ring: int, offset_deg: float = 0.0) -> list[tuple[float, float, float]]:
+    out = []
+    for e in elevations:
+        for k in range(per_ring):
+            a = math.radians(offset_deg + 360.0 * k / per_ring)
+            el = math.radians(e)
+            out.append((math.cos(el) * math.cos(a), math.cos(el) * math.sin(a), math.sin(el)))
+    return out
+
+
+TRAIN = ring((10, 30, 50, 70), 12) + [(0.0, 0.0, 1.0)]
+TEST = ring((20, 40, 60, 80), 5, offset_deg=17.0)
+
+
+def rti_rig(directions) -> Rig:
+    return Rig(
+        "rti49",
+        1000.0,
+        Camera(direction=(0.0, 0.0, 1.0)),
+        (120.0, 120.0),
+        tuple(Light(direction=d) for d in directions),
+    )
+
+
+def photos_of(maps, rig: Rig, seed: int) -> torch.Tensor:
+    return simulate_images(maps, rig.light_set(), rig.field_mm, CameraModel(read_noise=0.002), seed=seed)
+
+
+def scores(pred: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
+    a, b = linear_to_srgb(pred.clamp(0, 1)), linear_to_srgb(truth.clamp(0, 1))
+    return 10 * math.log10(1 / float((a - b).square().mean())), float(ssim(a, b))
+
+
+def main() -> None:
+    torch.set_num_threads(2)
+    size = int(sys.argv[1]) if len(sys.argv) > 1 else 128
+    materials = [(f"{n} (artist)", artist_material(n, size)) for n in ARTIST_NAMES]
+    materials += [(f"{n} (photo)", photo_material(n, size)) for n in TINTS]
+    train, test = rti_rig(TRAIN), rti_rig(TEST)
+    rows = []
+    t0 = time.perf_counter()
+    print(
+        f"{'material':24s} {'HSH PSNR':>9s} {'SSIM':>6s} {'solver PSNR':>12s} {'SSIM':>6s} {'normal °':>9s}"
+        f" {'diffuse':>8s} {'specular':>9s} {'rough':>6s}"
+    )
+    for i, (name, maps) in enumerate(materials):
+        photos = photos_of(maps, train, seed=i)
+        cap = Capture(
+            train,
+            train.field_mm,
+            "srgb",
+            photos,
+            (photos >= 1 - 0.5 / 255).any(1, keepdim=True),
+            tuple(range(len(TRAIN))),
+            train.light_set(),
+            tuple(f"{k:02d}.png" for k in range(len(TRAIN))),
+        )
+        truth = render_maps(maps, test.light_set(), test.field_mm)
+        coef = fit_hsh(linear_to_srgb(photos.clamp(0, 1)), torch.tensor(TRAIN))
+        hsh = relight_hsh(coef, torch.tensor(TEST))
+        hsh_psnr = 10 * math.log10(1 / float((hsh - linear_to_srgb(truth.clamp(0, 1))).square().mean()))
+        hsh_ssim = float(ssim(hsh, linear_to_srgb(truth.clamp(0, 1))))
+        res = reconstruct_capture(cap, ReconstructConfig(model="none", refine="on"))
+        with torch.no_grad():
+            pred = render_maps(res.maps, test.light_set(), test.field_mm) * res.intensity_scale
+        psnr, s = scores(pred, truth)
+        cos = (res.maps.normal * maps.normal).sum(0).clamp(-1, 1)
+        normal_deg = float(torch.rad2deg(torch.acos(cos)).mean())
+        errs = [
+            float((getattr(res.maps, m) - getattr(maps, m)).square().mean().sqrt())
+            for m in ("diffuse", "specular", "roughness")
+        ]
+        rows.append((hsh_psnr, hsh_ssim, psnr, s, normal_deg, *errs))
+        print(
+            f"{name:24s} {hsh_psnr:9.2f} {hsh_ssim:6.3f} {psnr:12.2f} {s:6.3f} {normal_deg:9.2f}"
+            f" {errs[0]:8.4f} {errs[1]:9.4f} {errs[2]:6.3f}"
+        )
+    m = [sum(r[j] for r in rows) / len(rows) for j in range(8)]
+    print(
+        f"{'mean':24s} {m[0]:9.2f} {m[1]:6.3f} {m[2]:12.2f} {m[3]:6.3f} {m[4]:9.2f} {m[5]:8.4f} {m[6]:9.4f} {m[7]:6.3f}"
+    )
+    print(
+        f"{len(rows)} materials at {size}², {len(TRAIN)} lights, {len(TEST)} test lights, "
+        f"{time.perf_counter() - t0:.0f} s"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,163 @@
+"""Self-calibration: each light's intensity (RGB) estimated with the maps, from the photos alone.
+
+Real domes do not deliver the intensities their rig file states: LEDs age and differ,
+a handheld RTI light is nearer or farther in every photo. With enough photos the
+intensities and the maps are jointly determined up to one overall RGB factor (which
+the albedo absorbs), as semi-calibrated photometric stereo shows. So, alternately:
+
+1. fit the maps to the photos divided by the current gains (the ``lm`` solver from
+   flat maps, on every ``factor``-th pixel of the capture: the gains are global, and
+   a sample of the pixels fits in a fraction of the time);
+2. for each photo and channel, the median ratio of the photo to the rendering of the
+   fitted maps over pixels that are unsaturated and lit (rendering above ``LIT``), and
+   multiply it in (the median, not a least-squares ratio: pixels the fit gets wrong
+   would bias a mean; on simulated dome24 captures the median's gain errors were 3 to
+   20 times smaller);
+3. remove the part of the log gains linear in the lights' horizontal directions, and
+   divide the gains by their geometric mean over the photos, per channel
+   (:func:`without_tilt`): a brightness gradient across the dome photographs like a
+   tilted sample, and the overall factor stays in the maps, so a white-balanced capture
+   stays white-balanced. A gradient a dome really has needs a flat target to be seen
+   (``matscan calibrate --grey``).
+
+The result is a per-photo gain, applied as the calibration's per-light scale
+(photo = scale × model): :func:`with_gains` puts it into a capture's
+:class:`~matscan.capture.folder.Correction`, and the reconstruction writes it as a
+calibration file (``self_calibration.json``) that later captures on the same rig can
+name. Near-light positions are not estimated here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+from matscan.capture.folder import Capture, Correction
+from matscan.errors import MatscanError
+from matscan.render import render_maps
+from matscan.rig import LightSet
+
+if TYPE_CHECKING:
+    from matscan.reconstruct.job import ReconstructConfig
+
+#: Fewer photos than this leave the gains and the maps undetermined together.
+MIN_PHOTOS = 8
+#: Rendered linear values below this are too dark to say much about a gain.
+LIT = 0.02
+#: A photo's channel needs this many lit, unsaturated pixels for its gain to be updated.
+MIN_PIXELS = 16
+#: Alternations of fitting and gain estimation (on simulated dome24 captures the gains
+#: settle within three).
+ROUNDS = 3
+#: The capture is reduced to at most this many pixels on its longer side for the rounds.
+ROUND_SIDE = 128
+
+
+def reduced(capture: Capture, factor: int) -> Capture:
+    """Every ``factor``-th pixel of the capture's photos in each direction (calibrated,
+    linear float32), the one nearest each block's centre. Pixels are picked, not
+    averaged: the average of a block's renderings is not the rendering of its averaged
+    maps, and that difference would pass for a gain."""
+    if factor <= 1:
+        return capture
+    o = factor // 2
+    images = torch.cat([capture.linear([i])[..., o::factor, o::factor] for i in range(len(capture.files))])
+    saturated = capture.saturated[..., o::factor, o::factor]
+    return replace(capture, images=images, saturated=saturated, lut=None, correction=None, backlight={})
+
+
+def with_gains(capture: Capture, gains: Tensor) -> Capture:
+    """The capture with every photo divided by its gain (N, 3), on top of any calibration."""
+    n = len(capture.files)
+    c = capture.correction
+    if c is None:
+        c = Correction(None, torch.ones(n, 3), (None,) * n)
+    return replace(capture, correction=Correction(c.matrix, c.gain * gains, c.flats))
+
+
+def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUNDS) -> tuple[Tensor, dict[str, Any]]:
+    """Per-photo RGB gains (N, 3) of a capture (module doc) and a record: the gains by
+    photo, and the re-rendering RMSE of the sampled pixels before and after."""
+    from matscan.reconstruct.job import reconstruct_capture
+    from matscan.reconstruct.solver import rerender_error
+
+    n = len(capture.files)
+    if n < MIN_PHOTOS:
+        raise MatscanError(
+            f"--self-calibrate: needs at least {MIN_PHOTOS} photos to tell the lights from the maps, "
+            f"the capture has {n}"
+        )
+    h, w = capture.size
+    factor = max(1, math.ceil(max(h, w) / ROUND_SIDE))
+    small = reduced(capture, factor)
+    fit_cfg = replace(cfg, refine="on", solver="lm", self_calibrate=False, validate=0)
+    gains = torch.ones(n, 3)
+    history = []
+    for _ in range(rounds):
+        update = torch.ones(n, 3)
+        cap = with_gains(small, gains)
+        res = reconstruct_capture(cap, fit_cfg, None)
+        if not history:
+            history.append(rerender_error(res.maps, cap, list(range(n)), res.intensity_scale))
+        for i in range(n):
+            with torch.no_grad():
+                pred = render_maps(res.maps, cap.lights.select([i]), cap.field_mm, res.intensity_scale)[0]
+            photo = cap.linear([i])[0]
+            use = (~cap.saturation([i])[0]).expand_as(pred) & (pred > LIT)
+            for c in range(3):
+                ratio = photo[c][use[c]] / pred[c][use[c]]
+                if ratio.numel() >= MIN_PIXELS:
+                    update[i, c] = ratio.median()
+        gains = without_tilt(gains * update.clamp(0.2, 5.0), small.lights)
+    history.append(_fit_error(small, gains, fit_cfg))
+    record = {
+        "light_gains": {f: [round(float(v), 5) for v in g] for f, g in zip(capture.files, gains, strict=True)},
+        "rounds": rounds,
+        "reduced_by": factor,
+        "rerender_rmse": {"before": round(history[0], 6), "after": round(history[-1], 6)},
+    }
+    return gains, record
+
+
+def without_tilt(gains: Tensor, lights: LightSet) -> Tensor:
+    """Gains (N, 3) with the part of their logarithm that is linear in the lights'
+    horizontal directions removed, and divided by their geometric mean, per channel.
+
+    A gain that grows toward one side of the dome and a sample tilted toward that side
+    photograph alike (measured: left in, the estimated gains of a simulated dome24
+    capture were off by a cosine of the LED azimuth, ±9%). The sample lies flat on the
+    stage, so the tilt is taken as none, and the dome's LEDs as having no brightness
+    gradient from one side to the other that a flat target would not show."""
+    d = lights.position / lights.position.norm(dim=-1, keepdim=True)
+    design = torch.stack([torch.ones(len(d)), d[:, 0], d[:, 1]], dim=1).double()  # (N, 3)
+    log = gains.log().double()
+    coef = torch.linalg.lstsq(design, log).solution  # (3, 3): constant, x, y per channel
+    log = log - design[:, 1:] @ coef[1:]
+    log = log - log.mean(dim=0, keepdim=True)
+    return log.exp().float()
+
+
+def _fit_error(capture: Capture, gains: Tensor, cfg: ReconstructConfig) -> float:
+    """Re-rendering RMSE of a fit to all the photos divided by ``gains``."""
+    from matscan.reconstruct.job import reconstruct_capture
+    from matscan.reconstruct.solver import rerender_error
+
+    cap = with_gains(capture, gains)
+    res = reconstruct_capture(cap, cfg, None)
+    return rerender_error(res.maps, cap, list(range(len(cap.files))), res.intensity_scale)
+
+
+def calibration_document(capture: Capture, gains: Tensor) -> dict[str, Any]:
+    """The gains as a calibration file (matscan.calibrate's format, ``light_scales`` per
+    rig light, RGB), so that a later capture on the same rig can name it."""
+    from matscan.calibrate import CALIBRATION_FORMAT
+
+    scales = {}
+    for k, g in zip(capture.light_indices, gains, strict=True):
+        if k is not None:
+            scales[str(k)] = [round(float(v), 6) for v in g]
+    return {"format": CALIBRATION_FORMAT, "light_scales": scales}

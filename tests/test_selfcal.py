@@ -1,0 +1,98 @@
+"""Self-calibration of per-light intensities (matscan.reconstruct.selfcal), on simulated
+dome24 captures whose LEDs deviate from the rig file by known gains."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import pytest
+import torch
+
+from matscan.calibrate import apply_calibration
+from matscan.capture import load_capture
+from matscan.capture.folder import write_capture
+from matscan.errors import MatscanError
+from matscan.materials.procedural import generate
+from matscan.reconstruct import ReconstructConfig, reconstruct_capture
+from matscan.reconstruct.job import reconstruct
+from matscan.reconstruct.selfcal import without_tilt
+from matscan.render import render_maps
+from matscan.rig import builtin_rig
+
+RIG = builtin_rig("dome24")
+
+
+def _gains(seed: int = 5) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    gains = (0.8 + 0.4 * torch.rand(24, 1, generator=g)) * (0.97 + 0.06 * torch.rand(24, 3, generator=g))
+    return without_tilt(gains, RIG.light_set())
+
+
+def _capture(tmp_path, maps, gains, name="cap", noise=0.002):
+    lights = RIG.light_set()
+    photos = render_maps(maps, lights.with_intensity(lights.intensity * gains), RIG.field_mm)
+    photos = photos + noise * torch.randn(photos.shape, generator=torch.Generator().manual_seed(1))
+    write_capture(tmp_path / name, photos.clamp(0, 1), RIG, light_indices=list(range(24)), encoding="srgb", bits=16)
+    return tmp_path / name
+
+
+def test_without_tilt_removes_a_gradient_and_the_mean_exactly():
+    d = RIG.light_set().position / 225.0
+    a, b, c = torch.tensor([0.1, -0.2, 0.3]), torch.tensor([0.15, 0.0, -0.1]), torch.tensor([-0.05, 0.2, 0.0])
+    tilted = torch.exp(a + d[:, :1] * b + d[:, 1:2] * c)  # (24, 3): a gradient and an overall factor only
+    torch.testing.assert_close(without_tilt(tilted, RIG.light_set()), torch.ones(24, 3), atol=1e-6, rtol=0)
+    gains = _gains()
+    torch.testing.assert_close(without_tilt(gains * tilted, RIG.light_set()), gains, atol=1e-5, rtol=0)
+    assert torch.allclose(gains.log().mean(0), torch.zeros(3), atol=1e-6)
+
+
+@pytest.mark.parametrize("family", ["paper", "plastic"])
+def test_recovers_led_gains_within_two_percent(tmp_path, family):
+    maps = generate(family, 96, 1)
+    gains = _gains()
+    cap = load_capture(_capture(tmp_path, maps, gains))
+    res = reconstruct_capture(cap, ReconstructConfig(model="none", refine="on", self_calibrate=True))
+    assert res.light_gains.shape == (24, 3)
+    assert float((res.light_gains / gains - 1).abs().max()) < 0.02
+    record = res.self_calibration
+    assert record["rerender_rmse"]["after"] < 0.5 * record["rerender_rmse"]["before"]
+    assert len(record["light_gains"]) == 24
+
+
+def test_fewer_than_eight_photos_is_refused(tmp_path):
+    cap = load_capture(_capture(tmp_path, generate("paper", 32, 1), _gains())).select(range(6))
+    with pytest.raises(MatscanError, match="at least 8 photos"):
+        reconstruct_capture(cap, ReconstructConfig(model="none", self_calibrate=True))
+
+
+def test_written_calibration_is_reusable(tmp_path):
+    """self_calibration.json, named by a later capture of the same dome, corrects its photos
+    as self-calibration did: the plain reconstruction then fits as well."""
+    maps = generate("paper", 64, 2)
+    gains = _gains(9)
+    first = _capture(tmp_path, maps, gains, "first")
+    rec = reconstruct(first, tmp_path / "out", ReconstructConfig(model="none", self_calibrate=True))
+    assert "self_calibration.json" in rec["exports"]
+    doc = json.loads((tmp_path / "out" / "self_calibration.json").read_text())
+    assert sorted(doc["light_scales"], key=int) == [str(k) for k in range(24)]
+    # a second capture of another material on the same dome, naming that calibration
+    second = _capture(tmp_path, generate("plastic", 64, 3), gains, "second")
+    shutil.copy(tmp_path / "out" / "self_calibration.json", second / "cal.json")
+    meta = json.loads((second / "capture.json").read_text())
+    meta["calibration"] = "cal.json"
+    (second / "capture.json").write_text(json.dumps(meta))
+    cap = apply_calibration(load_capture(second))
+    corrected = cap.linear([3])
+    raw = load_capture(second).linear([3])
+    ratio = float((raw.sum() / corrected.sum()))
+    assert ratio == pytest.approx(float(gains[3].mean()), rel=0.03)
+    plain = reconstruct(second, tmp_path / "out2", ReconstructConfig(model="none"))
+    nominal = reconstruct(
+        _capture(tmp_path, generate("plastic", 64, 3), gains, "third"),
+        tmp_path / "out3",
+        ReconstructConfig(model="none"),
+    )
+    assert plain["rerender_rmse"] < nominal["rerender_rmse"]
+    assert math.isfinite(plain["rerender_rmse"])
