@@ -452,8 +452,7 @@ def _scales(value: Any, where: str, rig: Rig) -> dict[int, tuple[float, float, f
         for v in values:
             if v <= 0:
                 raise MatscanError(
-                    f"{field}: light {k} has scale {v:g}; a scale must be positive (photo = scale × model): "
-                    "recalibrate"
+                    f"{field}: light {k} has scale {v:g}; a scale must be positive (photo = scale × model): recalibrate"
                 )
             check_number(v, field, *SCALE_LIMITS)
         scales[k] = (values[0], values[1], values[2])

@@ -355,6 +355,36 @@ def cmd_rig_to_lp(args: argparse.Namespace) -> str:
     return f"rig to-lp: wrote {args.out} ({len(rig.lights)} lights{note})"
 
 
+def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
+    from matscan.atomic import write_text
+    from matscan.capture.rti import LightFile, lp_text, rig_from_lp
+    from matscan.capture.sphere import directions_from_sphere
+    from matscan.imagefile import READABLE
+    from matscan.jsonfile import dumps
+    from matscan.outputs import claim_output
+    from matscan.rig import rig_to_dict
+
+    cx, cy, radius = _vector(args.sphere, 3, "--sphere")
+    folder = Path(args.folder)
+    if not folder.is_dir():
+        raise MatscanError(f"{folder}: is not a folder of photos")
+    photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in READABLE)
+    if not photos:
+        raise MatscanError(f"{folder}: holds no photos ({', '.join(sorted(READABLE))})")
+    out = Path(args.out)
+    if out.suffix.lower() not in (".lp", ".json"):
+        raise MatscanError(f"--out: {out.name} must end in .lp (an RTI light file) or .json (a rig)")
+    with claim_output(out, "rig from-sphere", [folder], kind="file", overwrite=args.overwrite):
+        directions = directions_from_sphere(photos, (cx, cy), radius, args.encoding)
+        lights = LightFile(tuple(p.name for p in photos), tuple(directions))
+        if out.suffix.lower() == ".lp":
+            write_text(out, lp_text(rig_from_lp(lights), lights.files, y=args.y))
+        else:
+            write_text(out, dumps(rig_to_dict(rig_from_lp(lights, name=folder.name or "rti")), str(out)))
+    lowest = min(math.degrees(math.asin(d[2])) for d in directions)
+    return f"rig from-sphere: wrote {out} ({len(photos)} light directions, the lowest {lowest:.1f}° above the sample)"
+
+
 def cmd_import_rti(args: argparse.Namespace) -> str:
     from matscan.capture.rti import import_rti
 
@@ -663,6 +693,21 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)
     q.add_argument("--overwrite", action="store_true", help="replace an existing file")
     q.set_defaults(func=cmd_rig_to_lp)
+
+    q = rig_sub.add_parser(
+        "from-sphere", help="light directions from the highlight on a chrome sphere in each photo of a folder"
+    )
+    q.add_argument("folder", metavar="FOLDER", help="folder of photos, one per light, the sphere in each")
+    q.add_argument(
+        "--sphere", required=True, metavar="CX,CY,R", help="the sphere's centre (column, row) and radius, pixels"
+    )
+    q.add_argument("--out", required=True, help=".lp light file or rig .json to write")
+    q.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)
+    q.add_argument(
+        "--encoding", choices=["srgb", "linear"], default="srgb", help="how 8/16-bit photos are encoded (default srgb)"
+    )
+    q.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    q.set_defaults(func=cmd_rig_from_sphere)
 
     p = sub.add_parser("import-rti", help="a capture folder from an RTI folder (photos and an .lp light file)")
     p.add_argument("folder", metavar="FOLDER", help="RTI folder: photos and one .lp file")

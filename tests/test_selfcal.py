@@ -86,7 +86,7 @@ def test_written_calibration_is_reusable(tmp_path):
     cap = apply_calibration(load_capture(second))
     corrected = cap.linear([3])
     raw = load_capture(second).linear([3])
-    ratio = float((raw.sum() / corrected.sum()))
+    ratio = float(raw.sum() / corrected.sum())
     assert ratio == pytest.approx(float(gains[3].mean()), rel=0.03)
     plain = reconstruct(second, tmp_path / "out2", ReconstructConfig(model="none"))
     nominal = reconstruct(
