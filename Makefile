@@ -13,6 +13,10 @@ DEMO := demo
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --disable-pip-version-check torch==2.13.0
+	@# one OpenCV only: the contrib build (it has the ColorChecker detector) replaces the plain one,
+	@# whose files it shares, so a venv that has the plain one loses both before the install
+	@if $(BIN)/pip show opencv-python-headless >/dev/null 2>&1; then \
+		$(BIN)/pip uninstall --quiet --yes opencv-python-headless opencv-contrib-python-headless; fi
 	$(BIN)/pip install --quiet --disable-pip-version-check -e '.[dev]'
 	touch $(STAMP)
 

@@ -573,7 +573,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--corners",
         default=None,
         metavar="X,Y,…",
-        help="chart corners TL,TR,BR,BL as 8 numbers in pixels (default: the chart fills the photo)",
+        help="outer corners of the chart's grid of patches TL,TR,BR,BL as 8 numbers in pixels "
+        "(default: found in the photo)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing calibration file")
     p.set_defaults(func=cmd_calibrate)
