@@ -49,7 +49,7 @@ from matscan.capture.virtual import CameraModel, apply_camera
 from matscan.mapset import MapSet, normalize_normals
 from matscan.materials.noise import smoothstep, spectral_noise
 from matscan.materials.procedural import check_prior, random_material
-from matscan.render import render, render_maps, surface_points
+from matscan.render import render_maps, surface_points
 from matscan.rig import Rig, resolve_rig
 
 #: The stage under the sample, seen through holes: dark, rough, flat.
@@ -210,12 +210,8 @@ class SvbrdfDataset(Dataset):
         wb = 1 + cfg.white_balance_jitter * torch.randn(1, 3, generator=g)
         exposure = math.exp(cfg.exposure_jitter * float(torch.randn((), generator=g)))
         lights = lights.with_intensity(lights.intensity * gains * wb * exposure)
-        with torch.no_grad():
-            photos = render(
-                maps.diffuse, maps.specular, maps.roughness, maps.normal, lights, points, compile=cfg.compile
-            )
-        if maps.emissive is not None:
-            photos = photos + maps.emissive * exposure
+        with torch.no_grad():  # maps are already composited over the stage: no alpha left
+            photos = render_maps(maps, lights, self.rig.field_mm, compile=cfg.compile, points=points, emission=exposure)
         srgb = _u(g) < cfg.srgb_prob
         camera = CameraModel(
             read_noise=cfg.read_noise[0] + (cfg.read_noise[1] - cfg.read_noise[0]) * _u(g),

@@ -276,16 +276,20 @@ def render_maps(
     scale: float = 1.0,
     rows: tuple[int, int] | None = None,
     compile: bool | None = None,
+    points: Tensor | None = None,
+    emission: float = 1.0,
 ) -> Tensor:
     """A map set as the camera sees it under each light: (L, 3, H, W) linear radiance.
 
     The four reflectance maps are rendered (:func:`render`, design.md "Image
     formation") over the field they cover, then
 
-        image = (scale · rendering + emissive) · alpha
+        image = (scale · rendering + emission · emissive) · alpha
 
     the emissive map (light the sample gives off, linear RGB) added and alpha
     (coverage; 0 shows a black stage) multiplied, each where the map set has it.
+    The CLI's ``render``, the report, the solvers' error and the training data all
+    render through this function.
 
     Args:
         maps: (C, H, W) maps (:class:`~matscan.mapset.MapSet`), covering the whole field.
@@ -294,17 +298,22 @@ def render_maps(
         scale: factor on the reflected light (a fitted intensity scale), not on emission.
         rows: (start, stop) renders only those rows, at their place in the field.
         compile: as for :func:`render`.
+        points: (H, W, 3) surface points of the maps' pixels, mm, where they are a crop
+            of the field rather than all of it (:func:`surface_points` with an offset);
+            ``field_mm`` and ``rows`` are then not used.
+        emission: factor on the emissive map (a camera's exposure scales it with the rest).
 
     Returns:
         (L, 3, H, W) linear radiance in the maps' dtype (``rows``: (L, 3, stop − start, W)).
         Not clamped: highlights may exceed 1.
     """
     height, width = maps.size
-    start, stop = rows if rows is not None else (0, height)
+    start, stop = rows if rows is not None and points is None else (0, height)
     if not 0 <= start < stop <= height:
         raise MatscanError(f"render_maps: rows {(start, stop)} are not a band of the {height} rows of the maps")
     band = slice(start, stop)
-    points = surface_points(field_mm, (stop - start, width), (start, 0), (height, width), maps.diffuse.dtype)
+    if points is None:
+        points = surface_points(field_mm, (stop - start, width), (start, 0), (height, width), maps.diffuse.dtype)
     img = render(
         maps.diffuse[:, band],
         maps.specular[:, band],
@@ -317,7 +326,7 @@ def render_maps(
     if scale != 1.0:
         img = img * scale
     if maps.emissive is not None:
-        img = img + maps.emissive[:, band]
+        img = img + (maps.emissive[:, band] * emission if emission != 1.0 else maps.emissive[:, band])
     if maps.alpha is not None:
         img = img * maps.alpha[:, band]
     return img
