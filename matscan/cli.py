@@ -409,6 +409,54 @@ def cmd_import_rti(args: argparse.Namespace) -> str:
     )
 
 
+def cmd_capture(args: argparse.Namespace) -> str:
+    from matscan.capture.acquire import AcquireConfig, acquire, target_maps
+    from matscan.hardware.cameras import open_camera
+    from matscan.hardware.leds import open_leds
+    from matscan.rig import resolve_rig
+
+    rig = resolve_rig(args.rig)
+    cfg = AcquireConfig(
+        lights=rig.subset(args.lights) if args.lights else None,
+        backlight=args.backlight,
+        empty_stage=args.empty_stage,
+        target=args.target,
+        exposure_s=args.exposure,
+        level=args.level,
+        max_saturated=args.max_saturated,
+        retakes=args.retakes,
+    )
+    leds, board = open_leds(args.leds)
+    camera = None
+    try:
+        targets = None
+        if args.target and args.camera.startswith("virtual:"):
+            from matscan.mapset import read_mapset
+            from matscan.samples import maps_folder
+
+            size = read_mapset(maps_folder(args.camera[len("virtual:") :])).size[0]
+            targets = target_maps(args.target, size)
+        camera = open_camera(args.camera, rig, leds, seed=args.seed, target_maps=targets)
+        ask = (lambda message: input(f"matscan: {message} ")) if sys.stdin.isatty() else None
+        try:
+            record = acquire(args.out, rig, camera, leds, cfg, progress=True, ask=ask)
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt(
+                f"the photos taken so far are in {args.out}; run the same command to resume"
+            ) from None
+    finally:
+        if camera is not None:
+            camera.close()
+        leds.close()
+        if board is not None:
+            board.close()
+    exposure = f"{record['exposure_s']:.4g} s" if record["exposure_s"] else "set by the camera"
+    return (
+        f"capture: wrote {args.out} ({record['frames']} photos, exposure {exposure}, "
+        f"{record['retakes']} retaken; camera {record['camera']}, LEDs {record['leds']})"
+    )
+
+
 def cmd_synth(args: argparse.Namespace) -> str:
     from matscan.data import synthesize
 
@@ -724,6 +772,42 @@ def build_parser() -> argparse.ArgumentParser:
     _overwrite_folder(p)
     p.set_defaults(func=cmd_import_rti)
 
+    p = sub.add_parser("capture", help="take a capture with a camera and the LED controller (resumes when interrupted)")
+    p.add_argument("--rig", default="dome24", help="built-in rig name or rig .json file (default dome24)")
+    p.add_argument(
+        "--camera",
+        required=True,
+        help="virtual:MAPS (render a map set folder or @sample), folder:PATH (photos a camera's software saves), "
+        "or gphoto2 (a tethered camera; the camera extra)",
+    )
+    p.add_argument(
+        "--leds",
+        default="virtual",
+        help="serial:PORT (the LED board), simulated (the firmware on this computer, over a pseudo-terminal), "
+        "or virtual (default)",
+    )
+    p.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to write (or to resume)")
+    p.add_argument("--lights", default=None, help="named subset (24, 6, …) or indices like 0,4,8 (default all)")
+    p.add_argument("--backlight", action="store_true", help="also the green and blue backlight photos")
+    p.add_argument(
+        "--empty-stage", dest="empty_stage", action="store_true", help="and the backlight without the sample"
+    )
+    p.add_argument(
+        "--target", choices=["grey", "chart", "sphere"], default=None, help="photograph a calibration target"
+    )
+    p.add_argument("--exposure", type=positive_float, default=None, help="fixed exposure, seconds (default: chosen)")
+    p.add_argument("--level", type=positive_float, default=1.0, help="LED level, above 0 and at most 1 (default 1)")
+    p.add_argument(
+        "--max-saturated",
+        dest="max_saturated",
+        type=non_negative_float,
+        default=0.001,
+        help="largest fraction of saturated pixels in an LED photo (default 0.001)",
+    )
+    p.add_argument("--retakes", type=non_negative_int, default=2, help="retakes of a frame that fails its checks")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="noise seed of the virtual camera (default 0)")
+    p.set_defaults(func=cmd_capture)
+
     p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")
     p.add_argument("folder", metavar="FOLDER", help="capture or map set folder (or @sample)")
     p.add_argument("--maps", default=None, help="also show this map set (folder or @sample)")
@@ -756,8 +840,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"matscan: error: {_one_line(where + (exc.strerror or str(exc)))}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("matscan: interrupted; nothing was written", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"matscan: interrupted; {exc or 'nothing was written'}", file=sys.stderr)
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)

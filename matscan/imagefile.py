@@ -267,18 +267,26 @@ def write_image(
                 photometric=("minisblack" if data.shape[2] == 1 else "rgb"),
             )
         else:
-            data = _quantise(arr, bits)
-            if data.shape[2] == 3:
-                data = data[:, :, ::-1]
-            elif data.shape[2] == 4:
-                data = data[:, :, [2, 1, 0, 3]]
-            ok, buf = cv2.imencode(suffix, np.ascontiguousarray(data))
-            if not ok:
-                raise MatscanError(f"{path}: the encoder refused the image")
-            encoded = buf.tobytes()
-            if colourspace is not None and suffix == ".png":
-                encoded = _png_colour_chunks(encoded, colourspace)
-            tmp.write_bytes(encoded)
+            tmp.write_bytes(encode_image(arr, bits, suffix, colourspace, str(path)))
+
+
+def encode_image(
+    pixels: np.ndarray, bits: int = 8, suffix: str = ".png", colourspace: str | None = None, where: str = "image"
+) -> bytes:
+    """The bytes of a PNG (8 or 16-bit) or JPEG file of (H, W, C) values in [0, 1]
+    (clipped, rounded; RGB order), as :func:`write_image` writes them."""
+    data = _quantise(_channels_last(np.asarray(pixels)), bits)
+    if data.shape[2] == 3:
+        data = data[:, :, ::-1]
+    elif data.shape[2] == 4:
+        data = data[:, :, [2, 1, 0, 3]]
+    ok, buf = cv2.imencode(suffix, np.ascontiguousarray(data))
+    if not ok:
+        raise MatscanError(f"{where}: the encoder refused the image")
+    encoded = buf.tobytes()
+    if colourspace is not None and suffix == ".png":
+        encoded = _png_colour_chunks(encoded, colourspace)
+    return encoded
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:

@@ -52,7 +52,18 @@ from matscan.samples import capture_folder
 CAPTURE_FORMAT = "matscan-capture/1"
 ENCODINGS = ("srgb", "linear")
 BACKLIGHT_KEYS = ("green", "blue", "green_empty", "blue_empty")
-_KEYS = ("format", "rig", "encoding", "images", "backlight", "calibration", "field_mm", "simulation", "source")
+_KEYS = (
+    "format",
+    "rig",
+    "encoding",
+    "images",
+    "backlight",
+    "calibration",
+    "field_mm",
+    "simulation",
+    "source",
+    "acquisition",
+)
 _IMAGE_KEYS_INDEXED = ("light", "file")
 _IMAGE_KEYS_PER_IMAGE = ("file", "light_position_mm", "camera_position_mm", "intensity")
 
