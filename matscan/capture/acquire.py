@@ -5,11 +5,12 @@ that no photo saturates more than ``max_saturated`` of its pixels (a camera whos
 exposure is set by its own software keeps it); each LED in turn; the backlight green
 and blue with the sample, and with the empty stage when asked. Every frame is checked
 as it arrives: saturation, an all-dark frame (an LED that did not light), and a sample
-that moved since the previous LED frame (phase correlation of gradient images; the
-previous frame, because frames lit from far apart correlate badly: on the built-in
-sample, consecutive LED frames measured 0.03–0.46 px apart, LED 0 against LEDs 16–23 up
-to 21 px, and a true 3 px shift measured 2.9 px); a frame that fails is taken again
-(``retakes`` times) and the capture stops with a one-line error if it still fails.
+that moved since the previous LED frame (phase correlation of the log images with the
+shading removed; the previous frame, because frames lit from far apart correlate badly:
+on the built-in sample, consecutive LED frames measured 0.03–0.71 px apart, LED 0
+against the others up to 21 px, and a true 3 px shift measured 2.8 px); a frame that
+fails is taken again (``retakes`` times) and the capture stops with a one-line error if
+it still fails.
 
 Never lost, never overwritten:
 
@@ -164,28 +165,34 @@ def frame_checks(
             return out, f"{out['saturated']:.2%} of its pixels are saturated (at most {cfg.max_saturated:.2%})"
         if dark is not None and out["p99"] < float(np.percentile(dark, 99)) + cfg.dark_margin:
             return out, "it is as dark as the dark frame: did the LED light?"
-        if reference is not None:
-            shift = sample_shift(reference, grey)
-            out["shift_px"] = shift
-            if shift > cfg.max_shift_px:
+        if reference is not None and cfg.target is None:  # calibration targets have no texture to follow
+            shift, response = sample_shift(reference, grey)
+            out["shift_px"], out["shift_response"] = shift, response
+            if response >= MIN_RESPONSE and shift > cfg.max_shift_px:
                 return out, f"the sample moved {shift:.1f} px since the last LED frame (at most {cfg.max_shift_px:g})"
     return out, None
 
 
-def sample_shift(a: np.ndarray, b: np.ndarray) -> float:
-    """How far (px) image ``b`` is shifted from ``a``: phase correlation of their gradient
-    magnitudes (which change less than the shading when the light moves)."""
+def sample_shift(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """How far (px) image ``b`` is shifted from ``a``, and the phase correlation's
+    response (0..1, how much the two share): phase correlation of their log images with
+    the shading removed (minus a Gaussian blur of σ 2 px), which keeps the sample's own
+    texture while the light moves."""
     import cv2
 
-    def edges(img: np.ndarray) -> np.ndarray:
-        img = img.astype(np.float32)
-        gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
-        gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
-        return np.sqrt(gx * gx + gy * gy)
+    def texture(img: np.ndarray) -> np.ndarray:
+        log = np.log(img.astype(np.float32) + 1e-3)
+        return log - cv2.GaussianBlur(log, (0, 0), 2.0)
 
     window = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
-    (dx, dy), _ = cv2.phaseCorrelate(edges(a), edges(b), window)
-    return float(np.hypot(dx, dy))
+    (dx, dy), response = cv2.phaseCorrelate(texture(a), texture(b), window)
+    return float(np.hypot(dx, dy)), float(response)
+
+
+#: Below this phase-correlation response the images share too little texture for a
+#: shift to mean anything (a plain card; consecutive frames of the built-in sample: 0.27
+#: and above).
+MIN_RESPONSE = 0.15
 
 
 def choose_exposure(
@@ -455,7 +462,7 @@ def _write_capture_json(out, rig, state, camera, leds, exposure, cfg, encoding, 
 
 def target_maps(target: str, size: int) -> MapSet:
     """What a virtual camera sees on the stage for a calibration target, size² over the
-    field: an 18% grey card (matte), a ColorChecker Classic (its 24 reference colours on
+    field: an 18% grey card (Lambertian), a ColorChecker Classic (its 24 reference colours on
     a dark body), or a chrome sphere (F0 0.9, roughness 0.1, a third of the field across)
     on a grey card."""
     import torch
@@ -466,7 +473,7 @@ def target_maps(target: str, size: int) -> MapSet:
     flat = torch.zeros(3, h, w)
     flat[2] = 1
     diffuse = torch.full((3, h, w), 0.18)
-    specular = torch.full((3, h, w), 0.04)
+    specular = torch.zeros(3, h, w)  # Lambertian, as calibrate models a grey card
     roughness = torch.full((1, h, w), 0.9)
     normal = flat.clone()
     if target == "chart":
