@@ -419,7 +419,6 @@ def cmd_capture(args: argparse.Namespace) -> str:
     cfg = AcquireConfig(
         lights=rig.subset(args.lights) if args.lights else None,
         backlight=args.backlight,
-        empty_stage=args.empty_stage,
         target=args.target,
         exposure_s=args.exposure,
         level=args.level,
@@ -788,9 +787,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to write (or to resume)")
     p.add_argument("--lights", default=None, help="named subset (24, 6, …) or indices like 0,4,8 (default all)")
-    p.add_argument("--backlight", action="store_true", help="also the green and blue backlight photos")
     p.add_argument(
-        "--empty-stage", dest="empty_stage", action="store_true", help="and the backlight without the sample"
+        "--backlight",
+        action="store_true",
+        help="also the green and blue backlight photos, with the sample and then of the empty stage (alpha)",
     )
     p.add_argument(
         "--target", choices=["grey", "chart", "sphere"], default=None, help="photograph a calibration target"

@@ -53,7 +53,7 @@ def test_a_whole_capture_reconstructs_to_the_virtual_sample(tmp_path):
     leds, board = open_leds("simulated")
     maps = small_sample()
     camera = VirtualCamera(maps, RIG, leds)
-    cfg = AcquireConfig(backlight=True, empty_stage=True, exposure_s=0.01, max_saturated=0.3)
+    cfg = AcquireConfig(backlight=True, exposure_s=0.01, max_saturated=0.3)
     try:
         record = acquire(tmp_path / "cap", RIG, camera, leds, cfg)
     finally:
@@ -321,3 +321,36 @@ def test_cli_capture_summary(tmp_path, capsys):
     assert "capture: wrote" in out and "7 photos, exposure 0.01 s, 0 retaken" in out
     assert main(["capture", "--camera", "nikon", "--out", str(tmp_path / "x")]) == 2
     assert "--camera: 'nikon' is not virtual:MAPS, folder:PATH or gphoto2" in capsys.readouterr().err
+
+
+def test_the_operator_is_asked_to_empty_the_stage(tmp_path):
+    """A real camera cannot empty the stage itself: the operator is asked once, before the
+    empty-stage backlight photos; with no one to ask, the capture stops and keeps its photos."""
+    leds = VirtualLeds()
+    inner = VirtualCamera(small_sample(), RIG, leds)
+
+    class Tethered:  # a camera with no virtual stage
+        name, suffix, controls_exposure = "tethered", ".png", True
+
+        def shoot(self, exposure_s):
+            return inner.shoot(exposure_s)
+
+        def close(self):
+            pass
+
+    cfg = AcquireConfig(lights=(0, 8, 16), backlight=True, exposure_s=0.01, max_saturated=0.3)
+    with pytest.raises(MatscanError, match="need the sample removed; run the same command in a terminal"):
+        acquire(tmp_path / "cap", RIG, Tethered(), leds, cfg)
+    assert (tmp_path / "cap" / "back_blue.png").exists() and not (tmp_path / "cap" / "empty_green.png").exists()
+    asked = []
+
+    def operator(message):
+        asked.append(message)
+        inner.sample_present = False  # the operator lifts the sample off
+
+    acquire(tmp_path / "cap", RIG, Tethered(), leds, cfg, ask=operator)
+    assert asked == ["remove the sample from the stage, then press Enter"]
+    cap = load_capture(tmp_path / "cap")
+    assert sorted(cap.backlight) == ["blue", "blue_empty", "green", "green_empty"]
+    # the empty stage shows no sample: its green photo is the backlight alone, brighter than with the sample
+    assert float(cap.backlight["green_empty"].mean()) > float(cap.backlight["green"].mean())

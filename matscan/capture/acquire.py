@@ -2,8 +2,9 @@
 
 The sequence: a dark frame (everything off); the exposure, chosen on the rig's LEDs so
 that no photo saturates more than ``max_saturated`` of its pixels (a camera whose
-exposure is set by its own software keeps it); each LED in turn; the backlight green
-and blue with the sample, and with the empty stage when asked. Every frame is checked
+exposure is set by its own software keeps it); each LED in turn; with ``backlight``, the
+backlight green and blue with the sample, then (the operator asked to remove it) of the
+empty stage: the paper's 24 + 4 photos. Every frame is checked
 as it arrives: saturation, an all-dark frame (an LED that did not light), and a sample
 that moved since the previous LED frame (phase correlation of the log images with the
 shading removed; the previous frame, because frames lit from far apart correlate badly:
@@ -56,8 +57,7 @@ class AcquireConfig:
     """How a capture is taken (``matscan capture``'s flags)."""
 
     lights: Sequence[int] | None = None  # rig lights to photograph (all by default)
-    backlight: bool = False  # green and blue backlight frames with the sample
-    empty_stage: bool = False  # and with the empty stage (the sample removed)
+    backlight: bool = False  # green and blue backlight frames with the sample, then of the empty stage
     target: str | None = None  # a calibration target on the stage: grey, chart or sphere
     exposure_s: float | None = None  # a fixed exposure; chosen on the LEDs when None
     start_exposure_s: float = 0.01
@@ -70,8 +70,6 @@ class AcquireConfig:
     def __post_init__(self) -> None:
         if self.target is not None and self.target not in TARGETS:
             raise MatscanError(f"--target: {self.target!r} is not one of {', '.join(TARGETS)}")
-        if self.empty_stage and not self.backlight:
-            raise MatscanError("--empty-stage: needs --backlight (the empty stage is photographed on the backlight)")
         if not 0 < self.level <= 1:
             raise MatscanError(f"--level: {self.level!r} must be above 0 and at most 1")
         if self.exposure_s is not None and not self.exposure_s > 0:
@@ -106,10 +104,7 @@ def plan(rig: Rig, cfg: AcquireConfig) -> list[Frame]:
     frames += [Frame(f"led_{k:02d}", Illumination(led=k, level=cfg.level), "led", k) for k in lights]
     if cfg.backlight:
         frames += [Frame(f"back_{c}", Illumination(back=c, level=1.0), "back") for c in ("green", "blue")]
-        if cfg.empty_stage:
-            frames += [
-                Frame(f"empty_{c}", Illumination(back=c, level=1.0), "back", empty=True) for c in ("green", "blue")
-            ]
+        frames += [Frame(f"empty_{c}", Illumination(back=c, level=1.0), "back", empty=True) for c in ("green", "blue")]
     return frames
 
 
@@ -290,13 +285,21 @@ def acquire(
                     )
                 journal.append({"event": "exposure", "exposure_s": exposure, "tests": tests})
             bar = tqdm(total=len(frames), initial=len(done), desc="capture", unit="photo", disable=not progress)
+            emptied = False
             for frame in frames:
                 if frame.stem in done:
                     continue
-                if frame.empty and hasattr(camera, "sample_present") and camera.sample_present:
-                    if ask is not None:
+                if frame.empty and not emptied:
+                    if hasattr(camera, "sample_present"):  # the virtual stage empties itself
+                        camera.sample_present = False
+                    elif ask is not None:
                         ask("remove the sample from the stage, then press Enter")
-                    camera.sample_present = False
+                    else:
+                        raise MatscanError(
+                            "capture: the empty-stage backlight photos need the sample removed; run the same "
+                            "command in a terminal to be asked (the photos so far are kept)"
+                        )
+                    emptied = True
                 entry = _take(out, frame, camera, leds, exposure, cfg, dark, reference, state)
                 journal.append({"event": "frame", **entry})
                 state.done.append(entry)
