@@ -435,7 +435,9 @@ def cmd_capture(args: argparse.Namespace) -> str:
 
             size = read_mapset(maps_folder(args.camera[len("virtual:") :])).size[0]
             targets = target_maps(args.target, size)
-        camera = open_camera(args.camera, rig, leds, seed=args.seed, target_maps=targets)
+        camera = open_camera(
+            args.camera, rig, leds, args.seed, targets, aperture=args.aperture, iso=args.iso, raw=not args.jpeg
+        )
         ask = (lambda message: input(f"matscan: {message} ")) if sys.stdin.isatty() else None
         try:
             record = acquire(args.out, rig, camera, leds, cfg, progress=True, ask=ask)
@@ -806,6 +808,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--retakes", type=non_negative_int, default=2, help="retakes of a frame that fails its checks")
     p.add_argument("--seed", type=non_negative_int, default=0, help="noise seed of the virtual camera (default 0)")
+    p.add_argument("--aperture", default=None, help="gphoto2: the aperture as the camera lists it (for example 8)")
+    p.add_argument("--iso", default=None, help="gphoto2: the ISO as the camera lists it (for example 100)")
+    p.add_argument("--jpeg", action="store_true", help="gphoto2: JPEG instead of RAW")
     p.set_defaults(func=cmd_capture)
 
     p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")

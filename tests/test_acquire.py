@@ -154,6 +154,10 @@ def test_sigint_stops_with_the_leds_off_and_says_how_to_resume(tmp_path):
     assert proc.returncode == 130
     assert "run the same command to resume" in err and "Traceback" not in err
     assert load_capture(tmp_path / "cap").files  # what was taken is a capture
+    assert subprocess.run(cmd, capture_output=True, timeout=300).returncode == 0
+    whole = [*cmd[:-1], str(tmp_path / "whole")]
+    assert subprocess.run(whole, capture_output=True, timeout=300).returncode == 0
+    assert files(tmp_path / "cap") == files(tmp_path / "whole")
 
 
 def test_a_controller_that_stops_answering_stops_the_capture(tmp_path):

@@ -253,9 +253,19 @@ class Gphoto2Camera:
             pass
 
 
-def open_camera(spec: str, rig, leds, seed: int = 0, target_maps=None):
+def open_camera(
+    spec: str,
+    rig,
+    leds,
+    seed: int = 0,
+    target_maps=None,
+    aperture: str | None = None,
+    iso: str | None = None,
+    raw: bool = True,
+):
     """``virtual:MAPS`` (a map set folder or ``@sample``), ``folder:PATH`` or
-    ``gphoto2``; ``target_maps`` replaces the virtual camera's sample (calibration targets)."""
+    ``gphoto2``; ``target_maps`` replaces the virtual camera's sample (calibration
+    targets); ``aperture``, ``iso`` and ``raw`` set a gphoto2 camera."""
     if spec.startswith("virtual:") and len(spec) > len("virtual:"):
         from matscan.mapset import read_mapset
         from matscan.samples import maps_folder
@@ -265,5 +275,5 @@ def open_camera(spec: str, rig, leds, seed: int = 0, target_maps=None):
     if spec.startswith("folder:") and len(spec) > len("folder:"):
         return FolderCamera(spec[len("folder:") :], keepalive=leds.keepalive)
     if spec == "gphoto2":
-        return Gphoto2Camera()
+        return Gphoto2Camera(aperture=aperture, iso=iso, raw=raw)
     raise MatscanError(f"--camera: {spec!r} is not virtual:MAPS, folder:PATH or gphoto2")
