@@ -458,6 +458,45 @@ def cmd_capture(args: argparse.Namespace) -> str:
     )
 
 
+def cmd_batch(args: argparse.Namespace) -> str:
+    from matscan.batch import batch
+    from matscan.reconstruct import ReconstructConfig
+
+    cfg = ReconstructConfig(
+        model=args.model,
+        refine=args.refine,
+        solver=args.solver,
+        validate=args.validate,
+        self_calibrate=args.self_calibrate,
+        exr=args.exr,
+    )
+    failures = []
+
+    def report(name: str, result: dict) -> None:
+        if result["state"] == "failed":
+            failures.append(name)
+            print(f"matscan: warning: {name}: {result['error']}", file=sys.stderr)
+
+    manifest = batch(
+        args.captures,
+        args.out,
+        cfg,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        threads=args.threads,
+        retry_failed=args.retry_failed,
+        redo=args.redo,
+        progress=True,
+        on_result=report,
+    )
+    entries = manifest["captures"].values()
+    done = sum(e["state"] == "done" for e in entries)
+    failed = sum(e["state"] == "failed" for e in entries)
+    return (
+        f"batch: {done} done, {failed} failed of {len(manifest['captures'])}; catalogue {Path(args.out) / 'index.html'}"
+    )
+
+
 def cmd_synth(args: argparse.Namespace) -> str:
     from matscan.data import synthesize
 
@@ -812,6 +851,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iso", default=None, help="gphoto2: the ISO as the camera lists it (for example 100)")
     p.add_argument("--jpeg", action="store_true", help="gphoto2: JPEG instead of RAW")
     p.set_defaults(func=cmd_capture)
+
+    p = sub.add_parser("batch", help="reconstruct many captures with the same settings (Dask), and a catalogue")
+    p.add_argument("captures", nargs="+", metavar="CAPTURES", help="capture folders, glob patterns, or list files")
+    p.add_argument("--out", required=True, metavar="DIR", help="batch folder: one output per capture, the manifest")
+    p.add_argument("--workers", type=positive_int, default=None, help="local worker processes (default: one per core)")
+    p.add_argument("--scheduler", default=None, help="address of a running Dask scheduler to use instead")
+    p.add_argument(
+        "--threads", type=positive_int, default=None, help="torch threads per task (default: cores ÷ workers)"
+    )
+    p.add_argument("--retry-failed", dest="retry_failed", action="store_true", help="run the failed captures again")
+    p.add_argument("--redo", action="store_true", help="recompute every capture, finished ones too")
+    p.add_argument("--model", default="default", help="shipped model name, a .safetensors file, or none")
+    p.add_argument("--refine", default="auto", choices=["auto", "on", "off"], help="as for reconstruct")
+    p.add_argument("--solver", default="lm", choices=["lm", "adam"], help="as for reconstruct")
+    p.add_argument("--validate", type=non_negative_int, default=0, metavar="K", help="leave K photos out of each")
+    p.add_argument("--self-calibrate", dest="self_calibrate", action="store_true", help="as for reconstruct")
+    p.add_argument("--exr", action="store_true", help="also write every map as float EXR")
+    p.set_defaults(func=cmd_batch)
 
     p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")
     p.add_argument("folder", metavar="FOLDER", help="capture or map set folder (or @sample)")

@@ -1,0 +1,146 @@
+"""``matscan batch``: captures on a local Dask cluster, one broken, interrupted and resumed;
+the manifest; the catalogue in headless Chromium."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from matscan.batch import cluster_shape, expand_captures, output_names
+from matscan.errors import MatscanError
+
+pytest.importorskip("distributed")
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory) -> Path:
+    """Four tiny virtual captures (6 lights, 40 px) and one whose photo is missing."""
+    from matscan.capture.virtual import CameraModel, simulate
+    from matscan.mapset import read_mapset
+    from matscan.rig import builtin_rig
+
+    root = tmp_path_factory.mktemp("batch")
+    maps = read_mapset("@sample")
+    rig = builtin_rig("dome24")
+    for i, name in enumerate(("brass", "cork", "denim", "felt")):
+        simulate(maps, rig, root / name, lights=rig.subset("6"), camera=CameraModel(read_noise=0.002), seed=i, size=40)
+    (root / "torn").mkdir()
+    (root / "torn" / "capture.json").write_text(
+        json.dumps({"format": "matscan-capture/1", "rig": "dome24", "images": [{"light": 0, "file": "gone.png"}]})
+    )
+    return root
+
+
+def test_inputs_and_cluster_shape(captures, tmp_path):
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"# this week's swatches\n{captures / 'cork'}\n\n{captures / 'brass'}  # the brass one\n")
+    found = expand_captures([str(listing), str(captures / "c*"), str(captures / "felt")])
+    assert [p.name for p in found] == ["cork", "brass", "felt"]  # each once, in order
+    assert output_names([captures / "cork", tmp_path / "cork"]) == ["cork", "cork-2"]
+    with pytest.raises(MatscanError, match="is not a capture folder"):
+        expand_captures([str(tmp_path)])
+    with pytest.raises(MatscanError, match="matches no folder"):
+        expand_captures([str(tmp_path / "zz*")])
+    assert cluster_shape(None, 2) == (2, 1) and cluster_shape(1, 2) == (1, 2) and cluster_shape(2, 16) == (2, 8)
+
+
+def _manifest(out: Path) -> dict:
+    try:
+        return json.loads((out / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def test_interrupted_batch_resumes_and_reports_the_broken_capture(captures, tmp_path):
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "matscan.cli", "batch", str(captures / "*"), "--out", str(out), "--workers", "2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline:
+        states = [e["state"] for e in _manifest(out).get("captures", {}).values()]
+        if "done" in states or proc.poll() is not None:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    first = _manifest(out)["captures"]
+    assert len(first) == 5 and sum(e["state"] == "done" for e in first.values()) >= 1
+    done_before = {n: (out / n / "matscan.json").stat().st_mtime_ns for n, e in first.items() if e["state"] == "done"}
+
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert "batch: 4 done, 1 failed of 5" in again.stdout
+    manifest = _manifest(out)
+    states = {n: e["state"] for n, e in manifest["captures"].items()}
+    assert states == {"brass": "done", "cork": "done", "denim": "done", "felt": "done", "torn": "failed"}
+    assert "gone.png: no such file" in manifest["captures"]["torn"]["error"]
+    for name, mtime in done_before.items():  # finished before the kill: not recomputed
+        assert (out / name / "matscan.json").stat().st_mtime_ns == mtime
+    for name in ("brass", "cork", "denim", "felt"):
+        assert manifest["captures"][name]["rerender_rmse"] < 0.02
+        assert (out / name / "report.html").is_file()
+
+    page = (out / "index.html").read_text()
+    assert page.count("<tr data-name=") == 5 and "4 done, 1 failed, 0 pending" in page
+    assert "gone.png: no such file" in page and "thumbs/cork_relit.png" in page
+
+    # a third run does nothing; --retry-failed runs the broken one again
+    mtimes = {n: (out / n / "matscan.json").stat().st_mtime_ns for n in ("brass", "cork", "denim", "felt")}
+    third = subprocess.run([*cmd, "--retry-failed"], capture_output=True, text=True, timeout=300)
+    assert third.returncode == 0 and "torn: " in third.stderr
+    assert {n: (out / n / "matscan.json").stat().st_mtime_ns for n in mtimes} == mtimes
+    other = subprocess.run([*cmd, "--validate", "2"], capture_output=True, text=True, timeout=300)
+    assert other.returncode == 2 and "other reconstruction settings" in other.stderr
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (make test installs it)")
+def test_catalogue_sorts_and_filters_in_chromium(captures, tmp_path):
+    from matscan.batch import batch
+    from matscan.reconstruct import ReconstructConfig
+
+    out = tmp_path / "out"
+    batch(
+        [str(captures / "brass"), str(captures / "cork"), str(captures / "torn")], out, ReconstructConfig(), workers=1
+    )
+    manifest = _manifest(out)["captures"]
+    order_by_error = sorted(("brass", "cork"), key=lambda n: manifest[n]["rerender_rmse"])
+
+    def view(query: str) -> tuple[list[str], str]:
+        proc = subprocess.run(
+            [
+                CHROMIUM,
+                "--headless=new",
+                "--no-sandbox",
+                "--disable-gpu",
+                f"--user-data-dir={tmp_path / 'p'}",
+                "--virtual-time-budget=3000",
+                "--dump-dom",
+                f"file://{out / 'index.html'}?{query}",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        order = re.search(r'data-order="([^"]*)"', proc.stdout).group(1)
+        shown = re.search(r"(\d+ of \d+) shown", proc.stdout).group(1)
+        return (order.split(",") if order else []), shown
+
+    assert view("sort=name") == (["brass", "cork", "torn"], "3 of 3")
+    assert view("sort=error") == ([*order_by_error, "torn"], "3 of 3")  # the failed one sorts last
+    assert view("sort=error&desc=1")[0] == ["torn", *reversed(order_by_error)]
+    assert view("name=co") == (["cork"], "1 of 3")
+    limit = manifest[order_by_error[0]]["rerender_rmse"] + 1e-9
+    assert view(f"max_error={limit}") == ([order_by_error[0]], "1 of 3")
+    # the 6-light captures warn that lights are missing; the torn one counts its error
+    assert view("warnings=without") == ([], "0 of 3")
+    assert view("warnings=with")[1] == "3 of 3"
