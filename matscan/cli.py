@@ -70,7 +70,7 @@ finite_float = _number(float)
 
 #: Options whose value is a comma-separated vector that may start with a minus sign
 #: (argparse would take "-50,0,150" for an option).
-VECTOR_OPTIONS = ("--light", "--corners")
+VECTOR_OPTIONS = ("--light", "--corners", "--sphere")
 
 
 def _join_vectors(argv: Sequence[str]) -> list[str]:
@@ -383,6 +383,29 @@ def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
             write_text(out, dumps(rig_to_dict(rig_from_lp(lights, name=folder.name or "rti")), str(out)))
     lowest = min(math.degrees(math.asin(d[2])) for d in directions)
     return f"rig from-sphere: wrote {out} ({len(photos)} light directions, the lowest {lowest:.1f}° above the sample)"
+
+
+def cmd_rig_from_spheres(args: argparse.Namespace) -> str:
+    from matscan.atomic import write_text
+    from matscan.capture import load_capture
+    from matscan.capture.sphere import rig_from_spheres
+    from matscan.jsonfile import dumps
+    from matscan.outputs import capture_inputs, claim_output
+    from matscan.rig import rig_to_dict
+    from matscan.samples import capture_folder
+
+    spheres = []
+    for text in args.sphere:
+        x, y, z, r = _vector(text, 4, "--sphere")
+        if r <= 0:
+            raise MatscanError(f"--sphere: radius {r:g} must be positive (mm)")
+        spheres.append(((x, y, z), r))
+    folder = capture_folder(args.capture)
+    with claim_output(args.out, "rig from-spheres", capture_inputs(folder), kind="file", overwrite=args.overwrite):
+        rig, spreads = rig_from_spheres(load_capture(folder), spheres)
+        write_text(args.out, dumps(rig_to_dict(rig), str(args.out)))
+    worst = max(spreads.values(), default=0.0)
+    return f"rig from-spheres: wrote {args.out} ({len(spreads)} lights placed; rays within {worst:.2f} mm)"
 
 
 def cmd_import_rti(args: argparse.Namespace) -> str:
@@ -797,6 +820,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     q.add_argument("--overwrite", action="store_true", help="replace an existing file")
     q.set_defaults(func=cmd_rig_from_sphere)
+
+    q = rig_sub.add_parser(
+        "from-spheres", help="near-light positions from their highlights on two or more chrome spheres"
+    )
+    q.add_argument(
+        "capture", metavar="CAPTURE", help="capture of the spheres under each light (capture --target sphere)"
+    )
+    q.add_argument(
+        "--sphere",
+        action="append",
+        required=True,
+        metavar="X,Y,Z,R",
+        help="a sphere's centre and radius, mm, in the sample frame (give two or more)",
+    )
+    q.add_argument("--out", required=True, help="rig .json to write (the capture's rig, lights moved)")
+    q.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    q.set_defaults(func=cmd_rig_from_spheres)
 
     p = sub.add_parser("import-rti", help="a capture folder from an RTI folder (photos and an .lp light file)")
     p.add_argument("folder", metavar="FOLDER", help="RTI folder: photos and one .lp file")

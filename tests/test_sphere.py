@@ -88,3 +88,92 @@ def test_cli_writes_an_lp_file_from_sphere_photos(tmp_path, capsys):
     )
     assert main(["rig", "from-sphere", str(folder), "--sphere", "1,2", "--out", str(tmp_path / "x.lp")]) == 2
     assert "--sphere" in capsys.readouterr().err
+
+
+# --- near lights from two spheres ------------------------------------------------------
+
+FIELD = (120.0, 120.0)
+CAMERA = (0.0, 0.0, 225.0)
+SPHERES = [((-42.0, -38.0, 12.0), 12.0), ((40.0, 36.0, 10.0), 10.0)]
+
+
+def traced_spheres(light, size=320, roughness=0.1):
+    """Two mirror-like spheres (F0 0.9, GGX) on a dark stage under a point light, ray
+    traced here from scratch (not with the project's renderer): camera at CAMERA, images
+    rectified to the field (pixel centre -> its point on z = 0 -> the ray from the camera)."""
+    n_px = size
+    xs = (torch.arange(n_px, dtype=torch.float64) + 0.5) / n_px * FIELD[0] - FIELD[0] / 2
+    ys = FIELD[1] / 2 - (torch.arange(n_px, dtype=torch.float64) + 0.5) / n_px * FIELD[1]
+    q = torch.stack(torch.meshgrid(ys, xs, indexing="ij")[::-1] + (torch.zeros(n_px, n_px, dtype=torch.float64),), -1)
+    q = torch.stack([q[..., 0], q[..., 1], q[..., 2]], -1)
+    cam = torch.tensor(CAMERA, dtype=torch.float64)
+    img = torch.full((n_px, n_px), 0.02, dtype=torch.float64)
+    depth = torch.full((n_px, n_px), math.inf, dtype=torch.float64)
+    lpos = torch.tensor(light, dtype=torch.float64)
+    alpha = roughness**2
+    for centre, radius in SPHERES:
+        d = q - cam
+        d = d / d.norm(dim=-1, keepdim=True)
+        oc = cam - torch.tensor(centre, dtype=torch.float64)
+        b = (d * oc).sum(-1)
+        disc = b * b - ((oc * oc).sum() - radius * radius)
+        t = -b - disc.clamp_min(0).sqrt()
+        hit = (disc > 0) & (t < depth)
+        p = cam + t[..., None] * d
+        n = (p - torch.tensor(centre, dtype=torch.float64)) / radius
+        v = -d
+        lv = lpos - p
+        dist = lv.norm(dim=-1)
+        l = lv / dist[..., None]
+        h = (l + v) / (l + v).norm(dim=-1, keepdim=True)
+        nh, nl, nv = (n * h).sum(-1).clamp_min(0), (n * l).sum(-1).clamp_min(1e-6), (n * v).sum(-1).clamp_min(1e-6)
+        dist_term = alpha**2 / (math.pi * (nh * nh * (alpha**2 - 1) + 1) ** 2)
+        spec = 0.9 * dist_term / (4 * nl * nv) * nl * math.pi * (225.0 / dist) ** 2
+        img = torch.where(hit, spec * 0.05, img)
+        depth = torch.where(hit, t, depth)
+    return img.clamp(0, 1).float()
+
+
+@pytest.mark.parametrize("light", [(150.0, 60.0, 120.0), (-100.0, -140.0, 110.0), (20.0, 190.0, 150.0)])
+def test_near_light_position_from_two_spheres(light):
+    from matscan.capture.sphere import light_position_from_spheres
+
+    # 960 px over the 120 mm field (0.125 mm a pixel; a 12 mm sphere is 96 px across), the
+    # spheres at opposite corners: measured 0.5 to 0.8 mm (with the spheres 60 mm apart
+    # near the middle, rays to a grazing LED nearly parallel: up to 3 mm, along the ray)
+    img = traced_spheres(light, size=960)
+    assert float(img.max()) == 1.0  # the highlights saturate, as they do in real photos
+    found, spread = light_position_from_spheres(img, FIELD, CAMERA, SPHERES)
+    error = math.dist(found, light)
+    assert error < 2.0, (found, error)
+    assert spread < 1.0
+
+
+def test_one_sphere_cannot_place_a_light():
+    from matscan.capture.sphere import light_position_from_spheres
+
+    with pytest.raises(MatscanError, match="needs two spheres or more"):
+        light_position_from_spheres(traced_spheres((150.0, 60.0, 120.0)), FIELD, CAMERA, SPHERES[:1])
+
+
+def test_cli_moves_the_rig_lights_to_where_the_spheres_place_them(tmp_path):
+    """dome24 whose LEDs 0, 11 and 22 sit up to 5 mm off the rig file: two spheres
+    photographed under each (ray traced), and `rig from-spheres` puts them back."""
+    from matscan.capture.folder import write_capture
+    from matscan.rig import builtin_rig, load_rig
+
+    rig = builtin_rig("dome24")
+    offsets = {0: (4.0, -3.0, 2.0), 11: (-5.0, 1.0, -2.5), 22: (2.0, 4.5, 3.0)}
+    true = {k: tuple(p + o for p, o in zip(rig.lights[k].position_mm, off, strict=True)) for k, off in offsets.items()}
+    photos = torch.stack([traced_spheres(true[k], size=960).expand(3, -1, -1) for k in offsets])
+    write_capture(tmp_path / "spheres", photos, rig, light_indices=list(offsets), encoding="linear", bits=16)
+    args = ["rig", "from-spheres", str(tmp_path / "spheres"), "--out", str(tmp_path / "rig.json")]
+    for (x, y, z), r in SPHERES:
+        args += ["--sphere", f"{x},{y},{z},{r}"]
+    assert main(args) == 0
+    moved = load_rig(tmp_path / "rig.json")
+    for k in offsets:
+        assert math.dist(moved.lights[k].position_mm, true[k]) < 2.0
+        assert math.dist(rig.lights[k].position_mm, true[k]) > 4.0  # the rig file was that far off
+    assert moved.lights[5] == rig.lights[5]  # not photographed: unchanged
+    assert main([*args[:3], "--sphere", "0,0,10,5", "--out", str(tmp_path / "x.json")]) == 2  # one sphere

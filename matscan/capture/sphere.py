@@ -97,3 +97,114 @@ def directions_from_sphere(
             raise input_error(path, "the highlight is at the sphere's outline: the light is at or below the horizon")
         out.append((float(d[0]), float(d[1]), float(d[2])))
     return out
+
+
+# --- near lights: positions from two (or more) spheres at known places ---------------------
+
+
+def _sphere_hits(size, field_mm, camera_mm, centre, radius):
+    """Where the camera's rays through each pixel first meet a sphere: points (H, W, 3),
+    normals (H, W, 3) and a mask (H, W), for images rectified to the sample field (a pixel
+    sees along the ray from the camera centre through its point on the plane z = 0)."""
+    from matscan.render import surface_points
+
+    q = surface_points(field_mm, size, dtype=torch.float64)
+    c = torch.tensor(camera_mm, dtype=torch.float64)
+    s = torch.tensor(centre, dtype=torch.float64)
+    d = q - c
+    d = d / d.norm(dim=-1, keepdim=True)
+    oc = c - s
+    b = (d * oc).sum(-1)
+    disc = b * b - ((oc * oc).sum() - radius * radius)
+    t = -b - disc.clamp_min(0).sqrt()
+    p = c + t[..., None] * d
+    n = (p - s) / radius
+    return p, n, disc > 0
+
+
+def highlight_ray(
+    image: Tensor, field_mm, camera_mm, centre, radius: float, where: str = "photo"
+) -> tuple[Tensor, Tensor]:
+    """The ray (origin, unit direction) toward a point light from its highlight on a
+    mirror-like sphere (``centre`` in mm, ``radius`` in mm) in a linear image (C, H, W)
+    rectified to the field: each pixel's camera ray is met with the sphere, the
+    highlight's normal is the brightness-weighted mean of the normals there, and the ray
+    leaves the sphere's point with that normal along the view mirrored about it."""
+    grey = image.double().mean(0) if image.ndim == 3 else image.double()
+    p, n, hit = _sphere_hits(tuple(grey.shape), field_mm, camera_mm, centre, radius)
+    c = torch.tensor(camera_mm, dtype=torch.float64)
+    v = c - p
+    v = v / v.norm(dim=-1, keepdim=True)
+    facing = hit & ((n * v).sum(-1) > 0.2)  # not the rim, where normals graze the view
+    if int(facing.sum()) < 9:
+        raise MatscanError(f"{where}: the sphere at {list(centre)} mm is not in the photo")
+    inside = grey[facing]
+    floor, peak = float(inside.median()), float(inside.max())
+    if peak - floor < MIN_CONTRAST * max(peak, 1e-12):
+        raise MatscanError(f"{where}: no highlight on the sphere at {list(centre)} mm")
+    flat = torch.where(facing, grey, torch.full_like(grey, -math.inf))
+    row, col = divmod(int(flat.argmax()), grey.shape[1])
+    level = floor + HIGHLIGHT_FRACTION * (peak - floor)
+    bright = ((grey > level) & facing).numpy().astype(np.uint8)
+    _, labels = cv2.connectedComponents(bright, connectivity=8)
+    region = torch.from_numpy(labels == labels[row, col])
+    # the highlight's normal, weighted in normal space (its lobe is round there, while on
+    # the image a near light stretches it), then the view mirrored about it at that point
+    w = ((grey - level).clamp_min(0) * region)[..., None]
+    normal = (n * w).sum((0, 1))
+    normal = normal / normal.norm()
+    origin = torch.tensor(centre, dtype=torch.float64) + radius * normal
+    view = c - origin
+    view = view / view.norm()
+    direction = 2 * (normal @ view) * normal - view
+    return origin, direction / direction.norm()
+
+
+def nearest_point(rays: Sequence[tuple[Tensor, Tensor]]) -> tuple[Tensor, float]:
+    """The point nearest to two or more rays in the least-squares sense, and its mean
+    distance to them (mm)."""
+    eye = torch.eye(3, dtype=torch.float64)
+    a = torch.zeros(3, 3, dtype=torch.float64)
+    b = torch.zeros(3, dtype=torch.float64)
+    for o, d in rays:
+        m = eye - torch.outer(d, d)
+        a += m
+        b += m @ o
+    x = torch.linalg.solve(a, b)
+    spread = sum(float(((eye - torch.outer(d, d)) @ (x - o)).norm()) for o, d in rays) / len(rays)
+    return x, spread
+
+
+def light_position_from_spheres(
+    image: Tensor, field_mm, camera_mm, spheres: Sequence[tuple[Sequence[float], float]], where: str = "photo"
+) -> tuple[tuple[float, float, float], float]:
+    """A near light's position (mm) from its highlights on two or more mirror-like spheres
+    whose centres (mm) and radii (mm) are known: the point nearest to the rays the
+    highlights send back (:func:`highlight_ray`), and the rays' mean distance from it."""
+    if len(spheres) < 2:
+        raise MatscanError("--sphere: a light's position needs two spheres or more (one gives only its direction)")
+    rays = [highlight_ray(image, field_mm, camera_mm, c, r, where) for c, r in spheres]
+    x, spread = nearest_point(rays)
+    return (float(x[0]), float(x[1]), float(x[2])), spread
+
+
+def rig_from_spheres(capture, spheres: Sequence[tuple[Sequence[float], float]]):
+    """The capture's rig with each photographed light moved to where its highlights on the
+    spheres place it (:func:`light_position_from_spheres`); lights not photographed keep
+    their place. Returns the rig and each moved light's ray spread (mm)."""
+    import dataclasses
+
+    rig = capture.rig
+    if rig.per_image_geometry or rig.camera.orthographic:
+        raise MatscanError(f"rig {rig.name}: light positions need a fixed rig with a camera centre")
+    lights = list(rig.lights)
+    spreads = {}
+    for i, k in enumerate(capture.light_indices):
+        if k is None or lights[k].directional:
+            continue
+        pos, spread = light_position_from_spheres(
+            capture.linear([i])[0], capture.field_mm, rig.camera.position_mm, spheres, capture.files[i]
+        )
+        lights[k] = dataclasses.replace(lights[k], position_mm=pos)
+        spreads[k] = spread
+    return dataclasses.replace(rig, lights=tuple(lights)), spreads
