@@ -155,8 +155,11 @@
   function move(ev) {
     var rect = canvas.getBoundingClientRect();
     var u = (ev.clientX - rect.left) / rect.width, v = (ev.clientY - rect.top) / rect.height;
-    // drag over the image: the light moves over the sample, 1.5 field widths across
-    light = [(u - 0.5) * 1.5 * cfg.field_mm[0] * 2, (0.5 - v) * 1.5 * cfg.field_mm[1] * 2, light[2]];
+    // drag over the image: the light moves over the sample, at its height, as far out as
+    // 1.5 times the larger of the field and that height (far enough to graze a small field
+    // under a distant light, as RTI rigs have)
+    var reach = 1.5 * Math.max(cfg.field_mm[0], cfg.field_mm[1], light[2]);
+    light = [(u - 0.5) * 2 * reach, (0.5 - v) * 2 * reach, light[2]];
     draw();
   }
   var dragging = false;
