@@ -9,10 +9,13 @@ the albedo absorbs), as semi-calibrated photometric stereo shows. So, alternatel
    flat maps, on every ``factor``-th pixel of the capture: the gains are global, and
    a sample of the pixels fits in a fraction of the time);
 2. for each photo and channel, the median ratio of the photo to the rendering of the
-   fitted maps over pixels that are unsaturated and lit (rendering above ``LIT``), and
-   multiply it in (the median, not a least-squares ratio: pixels the fit gets wrong
-   would bias a mean; on simulated dome24 captures the median's gain errors were 3 to
-   20 times smaller);
+   fitted maps over pixels that are unsaturated, lit (rendering above ``LIT``) and mostly
+   diffuse (``DIFFUSE_SHARE``), and multiply it in; a photo with too few such pixels
+   (``MIN_SHARE``) keeps its gain. The median, not a least-squares ratio: pixels the fit
+   gets wrong would bias a mean (on simulated dome24 captures the median's gain errors
+   were 3 to 20 times smaller). Mostly diffuse pixels: a highlight's brightness depends
+   on roughness and normal as much as on the light. Both thresholds were chosen on
+   bench/selfcal.py's 12 materials (docs/rti.md);
 3. remove the part of the log gains linear in the lights' horizontal directions, and
    divide the gains by their geometric mean over the photos, per channel
    (:func:`without_tilt`): a brightness gradient across the dome photographs like a
@@ -38,6 +41,7 @@ from torch import Tensor
 
 from matscan.capture.folder import Capture, Correction
 from matscan.errors import MatscanError
+from matscan.mapset import MapSet
 from matscan.render import render_maps
 from matscan.rig import LightSet
 
@@ -46,10 +50,18 @@ if TYPE_CHECKING:
 
 #: Fewer photos than this leave the gains and the maps undetermined together.
 MIN_PHOTOS = 8
+#: Gains are read where the diffuse reflection makes up at least this share of the
+#: rendering: a highlight's brightness depends on roughness and normal as much as on
+#: the light, and a fit can trade one for the other.
+DIFFUSE_SHARE = 0.7
 #: Rendered linear values below this are too dark to say much about a gain.
 LIT = 0.02
-#: A photo's channel needs this many lit, unsaturated pixels for its gain to be updated.
+#: A photo's channel needs this many lit, unsaturated, mostly diffuse pixels for its gain
+#: to be updated, and at least this share of its pixels: a material with too little
+#: diffuse reflection (a metal, black wool) keeps the rig file's intensities, which cost
+#: it less than gains read from a few dark pixels.
 MIN_PIXELS = 16
+MIN_SHARE = 0.05
 #: Alternations of fitting and gain estimation (on simulated dome24 captures the gains
 #: settle within three).
 ROUNDS = 3
@@ -103,14 +115,17 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
         res = reconstruct_capture(cap, fit_cfg, None)
         if not history:
             history.append(rerender_error(res.maps, cap, list(range(n)), res.intensity_scale))
+        matte = MapSet(**{**res.maps.present(), "specular": torch.zeros_like(res.maps.specular)})
         for i in range(n):
             with torch.no_grad():
                 pred = render_maps(res.maps, cap.lights.select([i]), cap.field_mm, res.intensity_scale)[0]
+                diffuse = render_maps(matte, cap.lights.select([i]), cap.field_mm, res.intensity_scale)[0]
             photo = cap.linear([i])[0]
-            use = (~cap.saturation([i])[0]).expand_as(pred) & (pred > LIT)
+            use = (~cap.saturation([i])[0]).expand_as(pred) & (pred > LIT) & (diffuse > DIFFUSE_SHARE * pred)
+            enough = max(MIN_PIXELS, MIN_SHARE * photo[0].numel())
             for c in range(3):
                 ratio = photo[c][use[c]] / pred[c][use[c]]
-                if ratio.numel() >= MIN_PIXELS:
+                if ratio.numel() >= enough:
                     update[i, c] = ratio.median()
         gains = without_tilt(gains * update.clamp(0.2, 5.0), small.lights)
     history.append(_fit_error(small, gains, fit_cfg))
