@@ -91,7 +91,6 @@ class Frame:
 class Progress:
     done: list[dict[str, Any]] = field(default_factory=list)
     exposure_s: float | None = None
-    retakes: int = 0
 
 
 def plan(rig: Rig, cfg: AcquireConfig) -> list[Frame]:
@@ -300,7 +299,7 @@ def acquire(
                             "command in a terminal to be asked (the photos so far are kept)"
                         )
                     emptied = True
-                entry = _take(out, frame, camera, leds, exposure, cfg, dark, reference, state)
+                entry = _take(out, frame, camera, leds, exposure, cfg, dark, reference)
                 journal.append({"event": "frame", **entry})
                 state.done.append(entry)
                 if frame.kind == "dark":
@@ -406,7 +405,7 @@ def _test_shot(camera, leds, k: int, exposure: float, level: float, out: Path):
         tmp.unlink(missing_ok=True)
 
 
-def _take(out: Path, frame: Frame, camera, leds, exposure, cfg: AcquireConfig, dark, reference, state) -> dict:
+def _take(out: Path, frame: Frame, camera, leds, exposure, cfg: AcquireConfig, dark, reference) -> dict:
     """Shoot a frame until it passes its checks; write it under its final name."""
     from matscan.imagefile import read_image
 
@@ -430,7 +429,6 @@ def _take(out: Path, frame: Frame, camera, leds, exposure, cfg: AcquireConfig, d
             _sync_dir(out)
             return _entry(frame, final.name, data, checks, attempt)
         tmp.unlink(missing_ok=True)
-        state.retakes += 1
     raise MatscanError(
         f"capture: {frame.stem}: {problem}; tried {cfg.retakes + 1} times, stopping (run again to resume)"
     )
@@ -452,7 +450,7 @@ def _write_capture_json(out, rig, state, camera, leds, exposure, cfg, encoding, 
         "dark": next((d["file"] for d in state.done if d["kind"] == "dark"), None),
         "target": cfg.target,
         "frames": len(state.done),
-        "retakes": state.retakes,
+        "retakes": sum(d.get("attempts", 1) - 1 for d in state.done),  # so a resumed capture counts the same
         "complete": complete,
     }
     chart = next((d["file"] for d in state.done if d["kind"] == "chart"), None)
