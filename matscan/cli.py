@@ -493,11 +493,9 @@ def cmd_batch(args: argparse.Namespace) -> str:
         self_calibrate=args.self_calibrate,
         exr=args.exr,
     )
-    failures = []
 
     def report(name: str, result: dict) -> None:
         if result["state"] == "failed":
-            failures.append(name)
             print(f"matscan: warning: {name}: {result['error']}", file=sys.stderr)
 
     manifest = batch(

@@ -59,26 +59,32 @@ def highlight_direction(image: Tensor, centre: tuple[float, float], radius: floa
     (H, W) or (C, H, W) (module doc)."""
     grey = image.double().mean(0) if image.ndim == 3 else image.double()
     normals, mask = sphere_normals(tuple(grey.shape), centre, radius)
-    if int(mask.sum()) < 9:
-        raise MatscanError(f"{where}: the sphere ({centre[0]:g}, {centre[1]:g}, r {radius:g}) is not inside the photo")
-    inside = grey[mask]
-    floor = float(inside.median())
-    peak = float(inside.max())
-    if peak - floor < MIN_CONTRAST * max(peak, 1e-12):
-        raise MatscanError(f"{where}: no highlight on the sphere (is the sphere where --sphere says?)")
-    flat = torch.where(mask, grey, torch.full_like(grey, -math.inf))
-    row, col = divmod(int(flat.argmax()), grey.shape[1])
-    # the highlight: the connected bright region holding the peak (a saturated highlight is
-    # a plateau, and the first maximum lies on its edge)
-    level = floor + HIGHLIGHT_FRACTION * (peak - floor)
-    bright = ((grey > level) & mask).numpy().astype(np.uint8)
-    _, labels = cv2.connectedComponents(bright, connectivity=8)
-    region = torch.from_numpy(labels == labels[row, col])
-    weights = (grey - level).clamp_min(0) * region
+    sphere = f"the sphere ({centre[0]:g}, {centre[1]:g}, r {radius:g})"
+    weights = highlight_weights(grey, mask, where, sphere)
     n = (normals * weights).sum(dim=(1, 2))
     n = n / n.norm()
     light = 2 * n[2] * n - torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype)
     return (light / light.norm()).float()
+
+
+def highlight_weights(grey: Tensor, mask: Tensor, where: str, sphere: str) -> Tensor:
+    """Weights (H, W) of a highlight's pixels among those of ``mask`` (the sphere's usable
+    part) in a grey image: the connected region brighter than halfway between the
+    sphere's median and its peak that holds the peak (a saturated highlight is a plateau,
+    and its first maximum lies on its edge), each pixel by how far it rises above that."""
+    if int(mask.sum()) < 9:
+        raise MatscanError(f"{where}: {sphere} is not inside the photo")
+    inside = grey[mask]
+    floor, peak = float(inside.median()), float(inside.max())
+    if peak - floor < MIN_CONTRAST * max(peak, 1e-12):
+        raise MatscanError(f"{where}: no highlight on {sphere} (is the sphere where --sphere says?)")
+    flat = torch.where(mask, grey, torch.full_like(grey, -math.inf))
+    row, col = divmod(int(flat.argmax()), grey.shape[1])
+    level = floor + HIGHLIGHT_FRACTION * (peak - floor)
+    bright = ((grey > level) & mask).numpy().astype(np.uint8)
+    _, labels = cv2.connectedComponents(bright, connectivity=8)
+    region = torch.from_numpy(labels == labels[row, col])
+    return (grey - level).clamp_min(0) * region
 
 
 def directions_from_sphere(
@@ -136,21 +142,9 @@ def highlight_ray(
     v = c - p
     v = v / v.norm(dim=-1, keepdim=True)
     facing = hit & ((n * v).sum(-1) > 0.2)  # not the rim, where normals graze the view
-    if int(facing.sum()) < 9:
-        raise MatscanError(f"{where}: the sphere at {list(centre)} mm is not in the photo")
-    inside = grey[facing]
-    floor, peak = float(inside.median()), float(inside.max())
-    if peak - floor < MIN_CONTRAST * max(peak, 1e-12):
-        raise MatscanError(f"{where}: no highlight on the sphere at {list(centre)} mm")
-    flat = torch.where(facing, grey, torch.full_like(grey, -math.inf))
-    row, col = divmod(int(flat.argmax()), grey.shape[1])
-    level = floor + HIGHLIGHT_FRACTION * (peak - floor)
-    bright = ((grey > level) & facing).numpy().astype(np.uint8)
-    _, labels = cv2.connectedComponents(bright, connectivity=8)
-    region = torch.from_numpy(labels == labels[row, col])
     # the highlight's normal, weighted in normal space (its lobe is round there, while on
     # the image a near light stretches it), then the view mirrored about it at that point
-    w = ((grey - level).clamp_min(0) * region)[..., None]
+    w = highlight_weights(grey, facing, where, f"the sphere at {list(centre)} mm")[..., None]
     normal = (n * w).sum((0, 1))
     normal = normal / normal.norm()
     origin = torch.tensor(centre, dtype=torch.float64) + radius * normal
