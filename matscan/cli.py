@@ -518,6 +518,14 @@ def cmd_batch(args: argparse.Namespace) -> str:
     )
 
 
+def cmd_train_anyrig(args: argparse.Namespace) -> str:
+    from matscan.anyrig import TrainAnyRig, train
+
+    cfg = TrainAnyRig(size=args.size, batch=args.batch, max_photos=args.max_photos, seed=args.seed, device=args.device)
+    result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True)
+    return f"train-anyrig: {result['steps']} steps in all; checkpoint {result['checkpoint']}"
+
+
 def cmd_synth(args: argparse.Namespace) -> str:
     from matscan.data import synthesize
 
@@ -907,6 +915,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--self-calibrate", dest="self_calibrate", action="store_true", help="as for reconstruct")
     p.add_argument("--exr", action="store_true", help="also write every map as float EXR")
     p.set_defaults(func=cmd_batch)
+
+    p = sub.add_parser("train-anyrig", help="train the any-rig network (resumes a run folder with a checkpoint)")
+    p.add_argument("--out", required=True, metavar="RUN", help="run folder: checkpoint.safetensors, log.csv")
+    p.add_argument("--minutes", type=positive_float, default=10.0, help="how long to train (default 10)")
+    p.add_argument("--max-steps", dest="max_steps", type=positive_int, default=None, help="stop after this step")
+    p.add_argument("--size", type=positive_int, default=64, help="crop size, a multiple of 4 (default 64)")
+    p.add_argument("--batch", type=positive_int, default=4, help="samples per step (default 4)")
+    p.add_argument("--max-photos", dest="max_photos", type=positive_int, default=12, help="most photos a sample")
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--device", default="auto", help="auto (CUDA when there is one), cpu or cuda")
+    p.set_defaults(func=cmd_train_anyrig)
 
     p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")
     p.add_argument("folder", metavar="FOLDER", help="capture or map set folder (or @sample)")

@@ -1,0 +1,339 @@
+"""One network for any rig: photos pooled with their light geometry.
+
+The dome24 networks (:mod:`matscan.nets`) read fixed light slots. This network reads
+each photo on its own, with what the rig says about it at every pixel, and pools over
+the photos (as Deschaintre et al. 2019 pool their inputs), so it takes any number, any
+order and any geometry of lights: domes of 8 to 100 lights, directional or near, and
+flashes.
+
+Per photo and pixel (10 channels, :func:`photo_input`): the photo divided by the
+irradiance a flat surface gets there from its light, log-encoded (3); the unit direction
+toward the light (3) and toward the camera (3); and the log of the light's falloff
+(R/d)² (1). A shared encoder turns each photo into features at three scales; max and
+mean over the photos at each scale (:func:`pool`) feed a U-Net decoder that gives the
+four maps. Training draws a rig at random for every sample (:func:`random_lights`) and
+renders procedural materials through it with the project's renderer and camera model.
+
+``matscan train-anyrig --out RUN`` trains it (resumable; CUDA when there is one);
+weights are safetensors. This is a first, small version: docs/rti.md says what it
+scores.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from matscan.errors import MatscanError
+from matscan.nets import IRRADIANCE_FLOOR, LOG_SCALE, OUT_CHANNELS
+from matscan.render import flat_irradiance
+from matscan.rig import LightSet
+
+IN_CHANNELS = 10
+MULTIPLE = 4  # image sizes are padded to a multiple of this
+
+
+def photo_input(photo: Tensor, lights: LightSet, points: Tensor) -> Tensor:
+    """The 10 input channels (10, H, W) of one photo (3, H, W, linear) under one light
+    (``lights`` of length 1) at surface points (H, W, 3) in mm."""
+    irr = flat_irradiance(lights, points)[0]
+    ratio = photo / irr.clamp_min(IRRADIANCE_FLOOR)
+    log = torch.log1p(ratio.clamp_min(0) * LOG_SCALE) / math.log1p(LOG_SCALE)
+    p = points.permute(2, 0, 1)  # (3, H, W)
+    q, w = lights.position[0].view(3, 1, 1), lights.w[0]
+    lv = q - w * p
+    d2 = (lv * lv).sum(0, keepdim=True)
+    l = lv * torch.rsqrt(d2)
+    c, cw = lights.camera[0].view(3, 1, 1), lights.camera_w[0]
+    vv = c - cw * p
+    v = vv * torch.rsqrt((vv * vv).sum(0, keepdim=True))
+    falloff = torch.log(lights.reference_distance_mm**2 / d2) / 4  # 0 at distance R; about ±0.5 over a dome
+    return torch.cat([log, l, v, falloff]).to(photo.dtype)
+
+
+def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride, 1), nn.LeakyReLU(0.2), nn.Conv2d(cout, cout, 3, 1, 1), nn.LeakyReLU(0.2)
+    )
+
+
+def pool(features: Tensor, present: Tensor) -> Tensor:
+    """Max and mean over the photo dimension of (B, K, C, H, W) features, absent photos
+    (``present`` (B, K) = 0) left out: (B, 2C, H, W)."""
+    mask = present.view(*present.shape, 1, 1, 1).to(features.dtype)
+    top = torch.where(mask > 0, features, torch.full_like(features, -1e4)).amax(dim=1)
+    mean = (features * mask).sum(1) / mask.sum(1).clamp_min(1)
+    return torch.cat([top, mean], 1)
+
+
+@dataclass(frozen=True)
+class AnyRigConfig:
+    width: int = 32  # channels at full resolution; ×2 and ×4 below
+
+
+class AnyRigNet(nn.Module):
+    """Shared per-photo encoder, pooling over photos, U-Net decoder (module doc)."""
+
+    def __init__(self, cfg: AnyRigConfig = AnyRigConfig()) -> None:
+        super().__init__()
+        w = cfg.width
+        self.cfg = cfg
+        self.enc1 = _block(IN_CHANNELS, w)
+        self.enc2 = _block(w, 2 * w, 2)
+        self.enc3 = _block(2 * w, 4 * w, 2)
+        self.mid = _block(8 * w, 4 * w)
+        self.up2 = nn.ConvTranspose2d(4 * w, 2 * w, 2, 2)
+        self.dec2 = _block(2 * w + 4 * w, 2 * w)
+        self.up1 = nn.ConvTranspose2d(2 * w, w, 2, 2)
+        self.dec1 = _block(w + 2 * w, w)
+        self.head = nn.Conv2d(w, sum(OUT_CHANNELS.values()), 1)
+
+    def encode(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        f1 = self.enc1(x)
+        f2 = self.enc2(f1)
+        return f1, f2, self.enc3(f2)
+
+    def decode(self, p1: Tensor, p2: Tensor, p3: Tensor) -> dict[str, Tensor]:
+        y = self.mid(p3)
+        y = self.dec2(torch.cat([self.up2(y), p2], 1))
+        y = self.dec1(torch.cat([self.up1(y), p1], 1))
+        out = self.head(y)
+        d, s, r, n = torch.split(out, [3, 3, 1, 3], 1)
+        normal = torch.cat([torch.tanh(n[:, :2]) * 2, F.softplus(n[:, 2:]) + 0.2], 1)
+        return {
+            "diffuse": torch.sigmoid(d),
+            "specular": torch.sigmoid(s - 2),
+            "roughness": torch.sigmoid(r),
+            "normal": normal / normal.norm(dim=1, keepdim=True),
+        }
+
+    def forward(self, x: Tensor, present: Tensor) -> dict[str, Tensor]:
+        """Maps (B, C, H, W) from inputs (B, K, 10, H, W) and presence (B, K)."""
+        b, k, c, h, w = x.shape
+        if h % MULTIPLE or w % MULTIPLE:
+            raise MatscanError(f"anyrig: the size {h}×{w} is not a multiple of {MULTIPLE}")
+        feats = self.encode(x.reshape(b * k, c, h, w))
+        pooled = [pool(f.reshape(b, k, *f.shape[1:]), present) for f in feats]
+        return self.decode(*pooled)
+
+    @torch.no_grad()
+    def predict(self, inputs) -> dict[str, Tensor]:
+        """Maps (C, H, W) from an iterable of (10, H, W) inputs, one photo at a time: the
+        pooling runs as it goes, so memory does not grow with the number of photos."""
+        tops: list[Tensor | None] = [None, None, None]
+        sums: list[Tensor | None] = [None, None, None]
+        count = 0
+        for x in inputs:
+            feats = self.encode(x[None])
+            for i, f in enumerate(feats):
+                tops[i] = f if tops[i] is None else torch.maximum(tops[i], f)
+                sums[i] = f if sums[i] is None else sums[i] + f
+            count += 1
+        if count == 0:
+            raise MatscanError("anyrig: no photos")
+        pooled = [torch.cat([t, s / count], 1) for t, s in zip(tops, sums, strict=True)]
+        return {k: v[0] for k, v in self.decode(*pooled).items()}
+
+
+# --- training data: a random rig for every sample ---------------------------------------
+
+
+def random_lights(g: torch.Generator, count: int, reference_mm: float = 225.0) -> tuple[LightSet, float]:
+    """``count`` lights of a rig drawn at random, and the camera's height (mm): a dome
+    (directional lights, or near ones at 150–600 mm) at 10°–80° elevation with a camera
+    above (perspective or, with directional lights, orthographic), or a phone flash
+    moved over the sample (light beside the camera, 150–400 mm up)."""
+
+    def u(lo: float, hi: float) -> float:
+        return lo + (hi - lo) * float(torch.rand((), generator=g))
+
+    kind = u(0, 1)
+    height = u(200, 600)
+    if kind < 0.2:  # flash: light and camera together, moved from photo to photo
+        pos = []
+        cams = []
+        for _ in range(count):
+            h = u(150, 400)
+            x, y = u(-60, 60), u(-60, 60)
+            pos.append((x + u(-15, 15), y + u(-15, 15), h))
+            cams.append((x, y, h))
+        lights = LightSet.points(torch.tensor(pos), torch.tensor(cams), reference_mm)
+        return lights, height
+    elevation = torch.deg2rad(10 + 70 * torch.rand(count, generator=g))
+    azimuth = 2 * math.pi * torch.rand(count, generator=g)
+    d = torch.stack(
+        [torch.cos(elevation) * torch.cos(azimuth), torch.cos(elevation) * torch.sin(azimuth), torch.sin(elevation)], 1
+    )
+    directional = kind < 0.6
+    orthographic = directional and u(0, 1) < 0.5
+    cam = (0.0, 0.0, reference_mm) if orthographic else (0.0, 0.0, height)
+    if directional:
+        pos, w = d * reference_mm, torch.zeros(count)
+    else:
+        pos, w = d * torch.empty(count, 1).uniform_(150, 600, generator=g), torch.ones(count)
+    lights = LightSet(
+        position=pos,
+        intensity=torch.ones(count, 3) * (1 + 0.1 * torch.randn(count, 1, generator=g)),
+        axis=-d,
+        exponent=torch.zeros(count),
+        camera=torch.tensor(cam).expand(count, 3).clone(),
+        reference_distance_mm=reference_mm,
+        w=w,
+        camera_w=torch.full((count,), 0.0 if orthographic else 1.0),
+    )
+    return lights, height
+
+
+def sample(g: torch.Generator, size: int, photos: int, prior: str = "v2") -> dict[str, Tensor]:
+    """One training sample: a procedural material (a crop of a 120 mm field) photographed
+    under ``photos`` random lights of a random rig, through the camera model."""
+    from matscan.capture.virtual import CameraModel, apply_camera
+    from matscan.materials.procedural import random_material
+    from matscan.render import render_maps, surface_points
+
+    seed = int(torch.randint(0, 2**31 - 1, (), generator=g))
+    _, maps = random_material(size, seed, prior=prior)
+    full = 4 * size
+    off = (
+        int(torch.randint(0, full - size + 1, (), generator=g)),
+        int(torch.randint(0, full - size + 1, (), generator=g)),
+    )
+    points = surface_points((120.0, 120.0), (size, size), off, (full, full))
+    lights, _ = random_lights(g, photos)
+    with torch.no_grad():
+        radiance = render_maps(maps, lights, (120.0, 120.0), points=points)
+    exposure = 1 / max(float(radiance.quantile(0.99)), 0.05) * float(0.3 + 0.6 * torch.rand((), generator=g))
+    srgb = bool(torch.rand((), generator=g) < 0.7)
+    camera = CameraModel(read_noise=0.002, encoding="srgb" if srgb else "linear", bits=8 if srgb else 16)
+    shots = apply_camera(radiance * exposure, camera, g) / exposure
+    x = torch.stack([photo_input(shots[k], lights.select([k]), points) for k in range(photos)])
+    return {"x": x, **{k: getattr(maps, k) for k in OUT_CHANNELS}}
+
+
+def loss(pred: dict[str, Tensor], batch: dict[str, Tensor]) -> Tensor:
+    terms = [(pred[k] - batch[k]).abs().mean() for k in ("diffuse", "specular", "roughness")]
+    terms.append(1 - (pred["normal"] * batch["normal"]).sum(1).mean())
+    return sum(terms)
+
+
+# --- training ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrainAnyRig:
+    size: int = 64
+    batch: int = 4
+    min_photos: int = 1
+    max_photos: int = 12
+    lr: float = 3e-4
+    seed: int = 0
+    prior: str = "v2"
+    device: str = "auto"
+
+
+CHECKPOINT = "checkpoint.safetensors"
+
+
+def _batch(g: torch.Generator, cfg: TrainAnyRig) -> dict[str, Tensor]:
+    k = int(torch.randint(cfg.min_photos, cfg.max_photos + 1, (), generator=g))
+    items = [sample(g, cfg.size, k, cfg.prior) for _ in range(cfg.batch)]
+    return {key: torch.stack([it[key] for it in items]) for key in items[0]}
+
+
+def train(
+    out: str | Path,
+    cfg: TrainAnyRig = TrainAnyRig(),
+    minutes: float = 10.0,
+    max_steps: int | None = None,
+    progress: bool = False,
+) -> dict:
+    """Train (or resume, from ``out/checkpoint.safetensors``) for ``minutes``; writes the
+    checkpoint (weights and step; Adam restarts on resume) and ``log.csv``."""
+    from safetensors.torch import load_file, save_file
+    from tqdm import tqdm
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = torch.device(
+        "cuda"
+        if cfg.device == "auto" and torch.cuda.is_available()
+        else ("cpu" if cfg.device == "auto" else cfg.device)
+    )
+    net = AnyRigNet().to(device)
+    step = 0
+    ckpt = out / CHECKPOINT
+    if ckpt.exists():
+        state = load_file(ckpt)
+        step = int(state.pop("step").item())
+        net.load_state_dict(state)
+    (out / "config.json").write_text(json.dumps({"train": asdict(cfg), "net": asdict(net.cfg)}, indent=1))
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
+    deadline = time.monotonic() + 60 * minutes
+    new_log = not (out / "log.csv").exists()
+    with open(out / "log.csv", "a", newline="") as f, tqdm(desc="anyrig", unit="step", disable=not progress) as bar:
+        writer = csv.writer(f)
+        if new_log:
+            writer.writerow(["step", "loss", "photos", "seconds"])
+        while time.monotonic() < deadline and (max_steps is None or step < max_steps):
+            t0 = time.perf_counter()
+            batch = {k: v.to(device) for k, v in _batch(g, cfg).items()}
+            present = torch.ones(batch["x"].shape[:2], device=device)
+            value = loss(net(batch["x"], present), batch)
+            opt.zero_grad()
+            value.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+            opt.step()
+            step += 1
+            writer.writerow([step, f"{float(value):.5f}", batch["x"].shape[1], f"{time.perf_counter() - t0:.3f}"])
+            bar.update(1)
+            if step % 50 == 0:
+                f.flush()
+                save_file(
+                    {
+                        **{k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()},
+                        "step": torch.tensor(step),
+                    },
+                    ckpt,
+                )
+    save_file(
+        {**{k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}, "step": torch.tensor(step)}, ckpt
+    )
+    return {"steps": step, "checkpoint": str(ckpt)}
+
+
+def load(path: str | Path) -> AnyRigNet:
+    """An AnyRigNet from a checkpoint or weights file."""
+    from safetensors.torch import load_file
+
+    state = load_file(path)
+    state.pop("step", None)
+    net = AnyRigNet()
+    net.load_state_dict(state)
+    return net.eval()
+
+
+def predict_capture(net: AnyRigNet, capture) -> dict[str, Tensor]:
+    """The network's maps for a loaded capture of any rig (its size padded to a multiple
+    of 4 and cropped back)."""
+    from matscan.render import surface_points
+
+    h, w = capture.size
+    points = surface_points(capture.field_mm, (h, w))
+    ph, pw = (-h) % MULTIPLE, (-w) % MULTIPLE
+
+    def inputs():
+        for i in range(len(capture.files)):
+            x = photo_input(capture.linear([i])[0], capture.lights.select([i]), points)
+            yield F.pad(x[None], (0, pw, 0, ph), mode="replicate")[0]
+
+    maps = net.predict(inputs())
+    return {k: v[:, :h, :w] for k, v in maps.items()}
