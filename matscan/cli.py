@@ -791,7 +791,7 @@ def build_parser() -> argparse.ArgumentParser:
         f"which way the .lp file's +y points in the image: up (toward row 0) or down (default {LP_Y_DEFAULT}; "
         "see docs/rti.md)"
     )
-    p = sub.add_parser("rig", help="rig files: from and to RTI .lp light files")
+    p = sub.add_parser("rig", help="rig files: from and to RTI .lp light files; lights from chrome spheres")
     rig_sub = p.add_subparsers(dest="rig_command", required=True)
     q = rig_sub.add_parser("from-lp", help="a rig of directional lights from an RTI .lp file")
     q.add_argument("lp", metavar="LP", help=".lp light file")
