@@ -293,7 +293,9 @@ def train(
             torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
             opt.step()
             step += 1
-            writer.writerow([step, f"{float(value):.5f}", batch["x"].shape[1], f"{time.perf_counter() - t0:.3f}"])
+            writer.writerow(
+                [step, f"{float(value.detach()):.5f}", batch["x"].shape[1], f"{time.perf_counter() - t0:.3f}"]
+            )
             bar.update(1)
             if step % 50 == 0:
                 f.flush()
