@@ -309,8 +309,13 @@ def acquire(
                 _write_capture_json(out, rig, state, camera, leds, exposure, cfg, encoding, complete=False)
                 bar.update(1)
             bar.close()
-        finally:
-            leds.off()
+        except BaseException:
+            try:  # everything off, but the error that stopped the capture is the one to report
+                leds.off()
+            except Exception:
+                pass
+            raise
+        leds.off()
         record = _write_capture_json(out, rig, state, camera, leds, exposure, cfg, encoding, complete=True)
         if not events or events[-1].get("event") != "complete":
             journal.append({"event": "complete", "seconds": round(time.perf_counter() - t0, 3)})
