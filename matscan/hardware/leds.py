@@ -146,8 +146,12 @@ class LedController:
         return dict(w.split("=", 1) for w in self.command("STATUS").split() if "=" in w)
 
     def close(self) -> None:
+        """Everything off and the port closed; a board that no longer answers is left to
+        its watchdog (which turns everything off) rather than hiding the error before."""
         try:
             self.off()
+        except MatscanError:
+            pass
         finally:
             self.port.close()
 
