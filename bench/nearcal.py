@@ -1,0 +1,155 @@
+"""Near-light positions from the photos alone, by variable projection: where it works and
+where it does not (docs/rti.md, "Not done yet"). Not used by ``reconstruct``.
+
+A simulated dome24 whose LEDs are ±5 mm off their rig-file positions (uniform per axis,
+each LED's axis still aimed at the centre) and ±20% in brightness photographs a material
+(8-bit sRGB, read noise 0.002). Then:
+
+1. the intensities are self-calibrated as ``--self-calibrate`` does, and the maps fitted
+   with the rig file's positions;
+2. the positions are estimated by variable projection: under a Lambertian model each
+   pixel's b = ρ·n is the 3 × 3 least-squares solution given the lights, so the misfit
+   of the photos (grey, over the (pixel, photo) pairs that are unsaturated, lit and
+   mostly diffuse by the fit of step 1) is a function of the 72 light coordinates and
+   24 gains alone, minimised by L-BFGS;
+3. the intensities are self-calibrated again with the new positions and the maps fitted.
+
+Printed per material: the positions' mean and largest error (mm), and the novel-light
+PSNR (dB, sRGB) of fits with the true dome ("ideal"), the rig file ("nominal"), the
+self-calibrated intensities ("gains") and the estimated positions too ("+positions").
+``--matte`` zeroes the materials' specular maps first: there the positions of three of
+the four come back within 2 mm (the leather's relief leaves too few usable pixels); with
+the materials' own specular they do not (docs/rti.md gives the numbers).
+
+Run by hand: .venv/bin/python bench/nearcal.py [--matte] [SIZE]   (default 128)
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import replace
+
+import torch
+
+from matscan.capture import Capture
+from matscan.capture.folder import Correction
+from matscan.capture.virtual import CameraModel, simulate_images
+from matscan.mapset import MapSet
+from matscan.materials.photos import photo_material
+from matscan.materials.procedural import generate
+from matscan.reconstruct import ReconstructConfig, reconstruct_capture
+from matscan.reconstruct.selfcal import DIFFUSE_SHARE, LIT, estimate_gains, with_gains
+from matscan.render import render_maps, surface_points
+from matscan.rig import LightSet, builtin_rig
+
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+from selfcal import led_gains, novel_psnr  # noqa: E402
+
+
+def moved(lights: LightSet, delta: torch.Tensor) -> LightSet:
+    """The lights moved by delta (L, 3) mm, their axes still aimed at the origin."""
+    pos = lights.position + delta
+    return replace(lights, position=pos, axis=-pos / pos.norm(dim=-1, keepdim=True))
+
+
+def shading(pos: torch.Tensor, exponent: torch.Tensor, ref_mm: float, pts: torch.Tensor) -> torch.Tensor:
+    """(R/d)² · lobe · l for lights at pos (L, 3) aimed at the origin, at points (P, 3): (L, P, 3)."""
+    lv = pos[:, None, :] - pts[None]
+    d2 = (lv * lv).sum(-1)
+    l = lv / d2.sqrt()[..., None]
+    axis = -pos / pos.norm(dim=-1, keepdim=True)
+    lobe = (-(l * axis[:, None, :]).sum(-1)).clamp_min(1e-12) ** exponent[:, None]
+    return (ref_mm**2 / d2 * lobe)[..., None] * l
+
+
+def varpro_positions(cap: Capture, fit, rounds: int = 6) -> torch.Tensor:
+    """Light positions (L, 3) minimising the Lambertian misfit with ρ·n projected out."""
+    n = len(cap.files)
+    lights = cap.lights
+    with torch.no_grad():
+        pred = render_maps(fit.maps, lights, cap.field_mm, fit.intensity_scale)
+        matte = MapSet(**{**fit.maps.present(), "specular": torch.zeros_like(fit.maps.specular)})
+        diffuse = render_maps(matte, lights, cap.field_mm, fit.intensity_scale)
+    photo = cap.linear(list(range(n)))
+    use = ((~cap.saturation(list(range(n)))).expand_as(pred) & (pred > LIT) & (diffuse > DIFFUSE_SHARE * pred)).all(1)
+    h, w = photo.shape[-2:]
+    pts = surface_points(cap.field_mm, (h, w), dtype=torch.float64).reshape(-1, 3)
+    y = photo.double().mean(1).reshape(n, -1)
+    wt = use.reshape(n, -1).double()
+    keep = wt.sum(0) >= 8  # a pixel seen lit and diffuse in at least 8 photos
+    y, wt, pts = y[:, keep], wt[:, keep], pts[keep]
+    p0 = lights.position.double()
+    exponent = lights.exponent.double()
+    dz = torch.zeros(n, 3, dtype=torch.float64, requires_grad=True)
+    log_gain = torch.zeros(n, dtype=torch.float64, requires_grad=True)
+
+    def misfit() -> torch.Tensor:
+        s = (
+            shading(p0 + dz, exponent, lights.reference_distance_mm, pts)
+            * (log_gain - log_gain.mean()).exp()[:, None, None]
+        )
+        a = torch.einsum("np,npi,npj->pij", wt, s, s) + 1e-9 * torch.eye(3, dtype=torch.float64)
+        b = torch.linalg.solve(a, torch.einsum("np,npi,np->pi", wt, s, y))
+        e = y - torch.einsum("npi,pi->np", s, b)
+        return (wt * e * e).sum() / wt.sum()
+
+    scale = float(misfit())  # L-BFGS stops early on a misfit of order 1e-5 unless scaled
+    opt = torch.optim.LBFGS(
+        [dz, log_gain], max_iter=200, line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-15
+    )
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        loss = misfit() / scale
+        loss.backward()
+        return loss
+
+    for _ in range(rounds):
+        opt.step(closure)
+    return (p0 + dz).detach().float()
+
+
+def main() -> None:
+    torch.set_num_threads(2)
+    args = [a for a in sys.argv[1:] if a != "--matte"]
+    matte = "--matte" in sys.argv
+    size = int(args[0]) if args else 128
+    materials = [("paper", generate("paper", size, 1)), ("brick (photo)", photo_material("brick", size))]
+    materials += [("leather", generate("leather", size, 1)), ("plastic", generate("plastic", size, 1))]
+    cfg = ReconstructConfig(model="none", refine="on", solver="lm")
+    rig = builtin_rig("dome24")
+    nominal = rig.light_set()
+    t0 = time.perf_counter()
+    print(f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal nominal  gains +positions (dB)")
+    for i, (name, maps) in enumerate(materials):
+        if matte:
+            maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
+        gains = led_gains(100 + i)
+        delta = (torch.rand(24, 3, generator=torch.Generator().manual_seed(200 + i)) * 2 - 1) * 5
+        true = moved(nominal, delta)
+        photos = simulate_images(
+            maps, true.with_intensity(true.intensity * gains), rig.field_mm, CameraModel(read_noise=0.002), seed=i
+        )
+        saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
+        files = tuple(f"led_{k:02d}.png" for k in range(24))
+        cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
+        ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
+        plain = reconstruct_capture(cap, cfg)
+        g1, _ = estimate_gains(cap, cfg)
+        gains_only = reconstruct_capture(with_gains(cap, g1), cfg)
+        pos = varpro_positions(with_gains(cap, g1), gains_only)
+        cap2 = replace(cap, lights=moved(nominal, pos - nominal.position))
+        g2, _ = estimate_gains(cap2, cfg)
+        both = reconstruct_capture(with_gains(cap2, g2), cfg)
+        err = (pos - true.position).norm(dim=1)
+        psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in (ideal, plain, gains_only, both)]
+        print(
+            f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}   " + " ".join(f"{v:7.2f}" for v in psnr),
+            flush=True,
+        )
+    print(f"{len(materials)} materials at {size}² in {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
