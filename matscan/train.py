@@ -110,6 +110,8 @@ class TrainConfig:
     prior: str = "v1"  # the procedural material prior (matscan.materials.procedural.PRIORS)
     device: str = "auto"  # "auto" (CUDA if available, else CPU), "cpu", "cuda", "cuda:N"
     prefetch: int = 4  # batches each data worker prepares ahead
+    library: tuple[str, ...] = ()  # map set folders drawn instead of the prior (tools/photo_library.py)
+    library_prob: float = 0.5  # the share of samples drawn from them, when given
 
     @staticmethod
     def from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
@@ -118,8 +120,9 @@ class TrainConfig:
             if key not in names:
                 raise MatscanError(f"{where}: unknown key {key!r} (expected one of {', '.join(sorted(names))})")
         data = dict(data)
-        if "maps" in data:
-            data["maps"] = tuple(data["maps"])
+        for key in ("maps", "library"):
+            if key in data:
+                data[key] = tuple(data[key])
         return TrainConfig(**data)
 
 
@@ -144,6 +147,24 @@ def build_nets(cfg: TrainConfig, net: NetConfig | None = None) -> MapNets:
     """The networks of a run: ``net`` (a stored config), or else the preset's."""
     rig = resolve_rig(cfg.rig)
     return MapNets(len(rig.lights), net or preset(cfg.preset), cfg.variant, cfg.maps)
+
+
+def data_config(cfg: TrainConfig) -> DataConfig:
+    """How a run draws its samples; checks the prior, and that every library folder is
+    there (before any work)."""
+    for folder in cfg.library:
+        if not Path(folder).is_dir():
+            raise input_error(folder, "no such map set folder (library)")
+    if not 0 <= cfg.library_prob <= 1:
+        raise MatscanError(f"library_prob: {cfg.library_prob!r} must be between 0 and 1")
+    return DataConfig(
+        rig=cfg.rig,
+        crop=cfg.crop,
+        seed=cfg.seed,
+        prior=cfg.prior,
+        library=cfg.library,
+        library_prob=cfg.library_prob,
+    )
 
 
 #: TrainConfig fields that say where a run executes, not what it computes: a resume may change them.
@@ -442,7 +463,7 @@ def train(
         torch.backends.cudnn.benchmark = True  # one input shape for the whole run: pick the fastest convs
     if cfg.workers < 0 or (cfg.workers > 0 and cfg.prefetch < 1):
         raise MatscanError(f"workers {cfg.workers}, prefetch {cfg.prefetch}: need workers ≥ 0 and prefetch ≥ 1")
-    data_cfg = DataConfig(rig=cfg.rig, crop=cfg.crop, seed=cfg.seed, prior=cfg.prior)  # checks the prior
+    data_cfg = data_config(cfg)
     if world > 1 and not torch.distributed.is_initialized():
         torch.distributed.init_process_group("nccl" if device.type == "cuda" else "gloo")
     torch.manual_seed(cfg.seed)

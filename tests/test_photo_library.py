@@ -1,0 +1,120 @@
+"""Training map sets from licensed surface photos: the photo rules against closed forms,
+and tools/photo_library.py end to end on a .deb built here with dpkg-deb."""
+
+from __future__ import annotations
+
+import importlib.util
+import shutil
+import subprocess
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from matscan.errors import MatscanError
+from matscan.imagefile import write_image
+from matscan.materials.library import read_any
+from matscan.materials.photos import FIELD_MM, RELIEF_MM, maps_from_photo
+
+TOOL = Path(__file__).resolve().parent.parent / "tools" / "photo_library.py"
+
+
+def load_tool():
+    spec = importlib.util.spec_from_file_location("photo_library", TOOL)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_luminance_ramp_tilts_the_normal_by_the_relief_over_the_field():
+    size = 128
+    ramp = torch.linspace(0, 1, size).expand(size, size)
+    # made periodic (up, then down) so the tileable blur and differences see no seam
+    tri = torch.cat([ramp[:, ::2], ramp[:, ::2].flip(-1)], dim=1)
+    maps = maps_from_photo(tri.expand(3, -1, -1).clone())
+    slope = 2 * RELIEF_MM / FIELD_MM  # the relief rises over half the field
+    nx = maps.normal[0, :, size // 8 : 3 * size // 8]  # the rising half, away from the turns
+    assert float(nx.mean()) == pytest.approx(-slope / (1 + slope**2) ** 0.5, rel=0.05)
+    assert float(maps.normal[1].abs().max()) < 1e-4  # no change along y
+    assert float(maps.roughness.min()) >= 0.45 - 1e-6 and float(maps.roughness.max()) <= 0.85 + 1e-6
+
+
+def test_the_diffuse_keeps_the_photos_hue_and_a_grey_photo_gets_its_range():
+    grey = torch.rand(1, 64, 64, generator=torch.Generator().manual_seed(1)).expand(3, -1, -1).clone()
+    maps = maps_from_photo(grey)
+    d = maps.diffuse
+    assert torch.equal(d[0], d[1]) and torch.equal(d[1], d[2])
+    assert float(d.min()) == pytest.approx(0.05, abs=1e-6) and float(d.max()) == pytest.approx(0.75, abs=1e-6)
+    tinted = grey * torch.tensor([1.0, 0.5, 0.25]).view(3, 1, 1)
+    d = maps_from_photo(tinted).diffuse
+    # linear ratios of the channels are those of the photo decoded from sRGB
+    from matscan.color import srgb_to_linear
+
+    want = srgb_to_linear(tinted[1]) / srgb_to_linear(tinted[0])
+    lit = (tinted[0] > 0.2) & (d.max(0).values < 1)  # where no channel is clipped at 1
+    assert int(lit.sum()) > 100
+    assert torch.allclose((d[1] / d[0])[lit], want[lit], rtol=1e-3)
+    with pytest.raises(MatscanError, match=r"\(3, H, W\)"):
+        maps_from_photo(grey[0])
+
+
+@pytest.mark.skipif(shutil.which("dpkg-deb") is None, reason="needs dpkg-deb (Debian)")
+def test_the_tool_builds_readable_map_sets_and_names_their_sources(tmp_path):
+    tool = load_tool()
+    pkg = tmp_path / "pkg"
+    rng = np.random.default_rng(0)
+    for i, (path, _, _) in enumerate(tool.PHOTOS.values()):
+        f = pkg / tool.ROOT.removeprefix("./") / path
+        f.parent.mkdir(parents=True, exist_ok=True)
+        img = rng.random((40 + i, 48, 3)).astype(np.float32)  # not square: the centre square is taken
+        write_image(f.with_suffix(".png"), img, bits=8)
+        if f.suffix != ".png":
+            f.with_suffix(".png").rename(f)  # the reader goes by content, not only the name
+    (pkg / "DEBIAN").mkdir()
+    (pkg / "DEBIAN" / "control").write_text(
+        "Package: supertuxkart-data\nVersion: 0.test\nArchitecture: all\nMaintainer: t <t@t>\nDescription: t\n"
+    )
+    deb = tmp_path / "supertuxkart-data_0.test_all.deb"
+    subprocess.run(["dpkg-deb", "--build", "--root-owner-group", str(pkg), str(deb)], check=True, capture_output=True)
+    out = tmp_path / "library"
+    assert tool.main([str(out), "--deb", str(deb), "--size", "32"]) == 0
+    folders = sorted(p for p in out.iterdir() if p.is_dir())
+    assert [p.name for p in folders] == sorted(tool.PHOTOS)
+    for folder in folders:
+        maps = read_any(folder)
+        assert maps.size == (32, 32)
+        assert torch.allclose(maps.normal.norm(dim=0), torch.ones(32, 32), atol=2e-3)
+    sources = (out / "SOURCES.md").read_text()
+    for name, (path, licence, _) in tool.PHOTOS.items():
+        assert f"| {name} | `{path}` | {licence} |" in sources
+    # a second run refuses the folder it filled; a .deb without the photos is named
+    assert tool.main([str(out), "--deb", str(deb)]) == 1
+    empty = tmp_path / "empty"
+    (empty / "DEBIAN").mkdir(parents=True)
+    (empty / "DEBIAN" / "control").write_text((pkg / "DEBIAN" / "control").read_text())
+    bad = tmp_path / "bad.deb"
+    subprocess.run(["dpkg-deb", "--build", "--root-owner-group", str(empty), str(bad)], check=True, capture_output=True)
+    assert tool.main([str(tmp_path / "x"), "--deb", str(bad)]) == 1
+
+
+def test_a_training_config_draws_from_a_library_and_refuses_a_missing_one(tmp_path):
+    from matscan.data import SvbrdfDataset
+    from matscan.mapset import write_mapset
+    from matscan.train import TrainConfig, data_config
+
+    photo = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(2))
+    folder = write_mapset(tmp_path / "rock", maps_from_photo(photo))
+    cfg = TrainConfig.from_dict({"library": [str(folder)], "library_prob": 1.0, "crop": 32})
+    data = data_config(cfg)
+    assert data.library == (str(folder),) and data.library_prob == 1.0
+    sample = SvbrdfDataset(replace(data, compile=False))[0]
+    assert sample["inputs"].shape[-2:] == (32, 32)
+    # the sample came from the library: the photo rule's F0 of 0.04 everywhere (8-bit sRGB
+    # in the file), where the procedural prior's materials vary
+    assert torch.allclose(sample["specular"], torch.full_like(sample["specular"], 0.04), atol=2e-3)
+    with pytest.raises(MatscanError, match="no such map set folder"):
+        data_config(TrainConfig.from_dict({"library": [str(tmp_path / "missing")]}))
+    with pytest.raises(MatscanError, match="library_prob"):
+        data_config(TrainConfig(library_prob=1.5))
