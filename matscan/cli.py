@@ -358,13 +358,13 @@ def cmd_rig_to_lp(args: argparse.Namespace) -> str:
 def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
     from matscan.atomic import write_text
     from matscan.capture.rti import LightFile, lp_text, rig_from_lp
-    from matscan.capture.sphere import directions_from_sphere
+    from matscan.capture.sphere import directions_from_sphere, find_sphere
     from matscan.imagefile import READABLE
     from matscan.jsonfile import dumps
     from matscan.outputs import claim_output
     from matscan.rig import rig_to_dict
 
-    cx, cy, radius = _vector(args.sphere, 3, "--sphere")
+    given = _vector(args.sphere, 3, "--sphere") if args.sphere is not None else None
     folder = Path(args.folder)
     if not folder.is_dir():
         raise MatscanError(f"{folder}: is not a folder of photos")
@@ -375,6 +375,7 @@ def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
     if out.suffix.lower() not in (".lp", ".json"):
         raise MatscanError(f"--out: {out.name} must end in .lp (an RTI light file) or .json (a rig)")
     with claim_output(out, "rig from-sphere", [folder], kind="file", overwrite=args.overwrite):
+        cx, cy, radius = given if given is not None else find_sphere(photos, args.encoding, str(folder))
         directions = directions_from_sphere(photos, (cx, cy), radius, args.encoding)
         lights = LightFile(tuple(p.name for p in photos), tuple(directions))
         if out.suffix.lower() == ".lp":
@@ -382,7 +383,11 @@ def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
         else:
             write_text(out, dumps(rig_to_dict(rig_from_lp(lights, name=folder.name or "rti")), str(out)))
     lowest = min(math.degrees(math.asin(d[2])) for d in directions)
-    return f"rig from-sphere: wrote {out} ({len(photos)} light directions, the lowest {lowest:.1f}° above the sample)"
+    found = "" if given is not None else f"; the sphere found at ({cx:.1f}, {cy:.1f}), radius {radius:.1f} px"
+    return (
+        f"rig from-sphere: wrote {out} ({len(photos)} light directions, the lowest {lowest:.1f}° above the sample"
+        f"{found})"
+    )
 
 
 def cmd_rig_from_spheres(args: argparse.Namespace) -> str:
@@ -817,7 +822,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     q.add_argument("folder", metavar="FOLDER", help="folder of photos, one per light, the sphere in each")
     q.add_argument(
-        "--sphere", required=True, metavar="CX,CY,R", help="the sphere's centre (column, row) and radius, pixels"
+        "--sphere",
+        metavar="CX,CY,R",
+        help="the sphere's centre (column, row) and radius, pixels (default: found in the photos)",
     )
     q.add_argument("--out", required=True, help=".lp light file or rig .json to write")
     q.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)

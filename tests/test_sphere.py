@@ -4,12 +4,14 @@ rendered under known directional lights with the project's renderer."""
 from __future__ import annotations
 
 import math
+import shutil
+from pathlib import Path
 
 import pytest
 import torch
 
-from matscan.capture.rti import parse_lp
-from matscan.capture.sphere import directions_from_sphere, highlight_direction
+from matscan.capture.rti import parse_lp, read_lp
+from matscan.capture.sphere import directions_from_sphere, find_sphere, highlight_direction
 from matscan.cli import main
 from matscan.color import linear_to_srgb
 from matscan.errors import MatscanError
@@ -27,22 +29,41 @@ def _direction(elevation: float, azimuth: float) -> tuple[float, float, float]:
     return (math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e))
 
 
-def chrome_sphere(light: tuple[float, float, float], noise: float = 0.0, seed: int = 0) -> torch.Tensor:
-    """A mirror-like sphere (F0 0.9, roughness 0.12, no diffuse) on a grey card (albedo 0.2),
-    seen from straight above, under one directional light: linear (3, H, W)."""
-    h, w = SIZE
-    rows = torch.arange(h, dtype=torch.float32).view(-1, 1).expand(h, w)
-    cols = torch.arange(w, dtype=torch.float32).view(1, -1).expand(h, w)
-    x, y = (cols - CENTRE[0]) / RADIUS, -(rows - CENTRE[1]) / RADIUS
+def chrome_sphere(
+    light: tuple[float, float, float],
+    noise: float = 0.0,
+    seed: int = 0,
+    *,
+    size: tuple[int, int] = SIZE,
+    centre: tuple[float, float] = CENTRE,
+    radius: float = RADIUS,
+    background: torch.Tensor | None = None,
+    supersample: int = 1,
+    matte: bool = False,
+) -> torch.Tensor:
+    """A mirror-like sphere (F0 0.9, roughness 0.12, no diffuse; ``matte``: a white
+    Lambertian one instead) on a grey card (albedo 0.2, or the linear ``background``
+    (3, H, W) albedo), seen from straight above, under one directional light: linear
+    (3, H, W); ``supersample`` × ``supersample`` samples a pixel, box-filtered, as a
+    camera's pixels integrate."""
+    h, w = size[0] * supersample, size[1] * supersample
+    at = (torch.arange(max(h, w), dtype=torch.float32) + 0.5) / supersample - 0.5  # pixel coordinates of the samples
+    rows, cols = at[:h].view(-1, 1).expand(h, w), at[:w].view(1, -1).expand(h, w)
+    x, y = (cols - centre[0]) / radius, -(rows - centre[1]) / radius
     inside = x * x + y * y < 1
     z = (1 - x * x - y * y).clamp_min(0).sqrt()
     normal = torch.where(inside, torch.stack([x, y, z]), torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1))
-    diffuse = torch.where(inside, torch.zeros(3, h, w), torch.full((3, h, w), 0.2))
-    specular = torch.where(inside, torch.full((3, h, w), 0.9), torch.full((3, h, w), 0.04))
+    card = torch.full((3, h, w), 0.2)
+    if background is not None:
+        card = background.repeat_interleave(supersample, 1).repeat_interleave(supersample, 2)
+    diffuse = torch.where(inside, torch.full((3, h, w), 0.8 if matte else 0.0), card)
+    specular = torch.where(inside, torch.full((3, h, w), 0.0 if matte else 0.9), torch.full((3, h, w), 0.04))
     roughness = torch.where(inside, torch.full((1, h, w), 0.12), torch.full((1, h, w), 0.8))
     rig = Rig("sphere", 500.0, Camera(direction=(0.0, 0.0, 1.0)), (w, h), (Light(direction=light),))
     pts = torch.zeros(h, w, 3)
     img = render(diffuse, specular, roughness, normal, rig.light_set(), pts)[0]
+    if supersample > 1:
+        img = torch.nn.functional.avg_pool2d(img[None], supersample)[0]
     if noise:
         img = img + noise * torch.randn(img.shape, generator=torch.Generator().manual_seed(seed))
     return img.clamp(0, 1)
@@ -177,3 +198,106 @@ def test_cli_moves_the_rig_lights_to_where_the_spheres_place_them(tmp_path):
         assert math.dist(rig.lights[k].position_mm, true[k]) > 4.0  # the rig file was that far off
     assert moved.lights[5] == rig.lights[5]  # not photographed: unchanged
     assert main([*args[:3], "--sphere", "0,0,10,5", "--out", str(tmp_path / "x.json")]) == 2  # one sphere
+
+
+# --- finding the sphere in the photos ------------------------------------------------------
+
+ICON = Path(__file__).parent / "data" / "rti-icon"
+
+
+def _dome(count: int = 18) -> list[tuple[float, float, float]]:
+    return [_direction((15.0, 35.0, 60.0)[k % 3], 360.0 * k / count + 7.0) for k in range(count)]
+
+
+def test_finds_the_sphere_on_a_textured_card_to_a_tenth_of_a_pixel():
+    """Box-filtered spheres on a random card: the outline within 0.1 px, and the light
+    directions through it within half a degree of the true ones."""
+    card = torch.rand(3, *SIZE, generator=torch.Generator().manual_seed(3)) * 0.5 + 0.1
+    lights = _dome()
+    photos = torch.stack(
+        [chrome_sphere(light, 0.003, k, background=card, supersample=4) for k, light in enumerate(lights)]
+    )
+    cx, cy, r = find_sphere(photos)
+    assert (cx, cy, r) == pytest.approx((*CENTRE, RADIUS), abs=0.1)
+    for k, light in enumerate(lights):
+        assert _angle(highlight_direction(photos[k], (cx, cy), r), light) < 0.5
+
+
+def test_a_matte_sphere_is_not_taken_for_a_chrome_one():
+    """A white Lambertian sphere beside the chrome one: its shading moves with the light
+    but shows no small highlight, so the chrome sphere is the one found; alone, it is
+    refused."""
+    size, chrome, matte = (160, 320), ((230.4, 80.2), 55.0), ((80.7, 78.9), 60.0)
+    photos = []
+    for k, light in enumerate(_dome(12)):
+        a = chrome_sphere(light, 0.002, k, size=size, centre=chrome[0], radius=chrome[1], supersample=2)
+        b = chrome_sphere(light, 0.0, k, size=size, centre=matte[0], radius=matte[1], supersample=2, matte=True)
+        left = torch.arange(size[1]) < 160
+        photos.append(torch.where(left, b, a))
+    photos = torch.stack(photos)
+    cx, cy, r = find_sphere(photos)
+    assert (cx, cy, r) == pytest.approx((*chrome[0], chrome[1]), abs=0.15)
+    with pytest.raises(MatscanError, match="no chrome sphere found"):
+        find_sphere(photos[..., :160])
+
+
+def _icon_with_sphere(centre, radius, every=3):
+    """The real rti-icon photos (every ``every``-th) with a box-filtered chrome sphere
+    pasted in, lit from each photo's .lp direction: a real, busy scene around it."""
+    from matscan.capture.sphere import _read_linear
+
+    lp = read_lp(ICON / "dirs.lp")
+    photos, lights = [], []
+    for k in range(0, len(lp.files), every):
+        photo = _read_linear(ICON / lp.files[k], "srgb")
+        size = tuple(photo.shape[-2:])
+        ss = 4
+        black = torch.zeros(3, *size)  # the rendering is then the sphere's light alone, weighted by its cover
+        sphere = chrome_sphere(
+            lp.directions[k], size=size, centre=centre, radius=radius, background=black, supersample=ss
+        )
+        at = (torch.arange(max(size) * ss, dtype=torch.float32) + 0.5) / ss - 0.5
+        ys, xs = at[: size[0] * ss, None], at[None, : size[1] * ss]
+        inside = (((xs - centre[0]) ** 2 + (ys - centre[1]) ** 2) < radius**2).float()
+        alpha = torch.nn.functional.avg_pool2d(inside[None, None], ss)[0]
+        photos.append(photo * (1 - alpha) + sphere)
+        lights.append(lp.directions[k])
+    return torch.stack(photos), lights
+
+
+def test_finds_a_sphere_pasted_into_a_real_capture():
+    """The icon's halo is a large round motif; the sphere in the corner is still found,
+    within 0.1 px, and the directions it gives are within a degree of the .lp's."""
+    photos, lights = _icon_with_sphere((355.4, 48.7), 32.0)
+    cx, cy, r = find_sphere(photos)
+    assert (cx, cy, r) == pytest.approx((355.4, 48.7, 32.0), abs=0.1)
+    worst = max(_angle(highlight_direction(p, (cx, cy), r), light) for p, light in zip(photos, lights, strict=True))
+    assert worst < 1.0
+
+
+def test_a_real_capture_without_a_sphere_is_refused(tmp_path, capsys):
+    """rti-icon holds no sphere (its directions came from another session's): the gilded
+    halo is round and glossy, but its highlights are broad, so nothing is made up."""
+    folder = tmp_path / "icon"
+    folder.mkdir()
+    for name in read_lp(ICON / "dirs.lp").files[::4]:
+        shutil.copy(ICON / name, folder / name)
+    code = main(["rig", "from-sphere", str(folder), "--out", str(tmp_path / "dirs.lp")])
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert "no chrome sphere found" in err and "--sphere CX,CY,R" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "dirs.lp").exists()
+
+
+def test_cli_finds_the_sphere_when_not_told(tmp_path, capsys):
+    folder = tmp_path / "rti"
+    folder.mkdir()
+    lights = _dome(9)
+    for k, light in enumerate(lights):
+        img = linear_to_srgb(chrome_sphere(light, 0.002, k, supersample=2))
+        write_image(folder / f"img{k:02d}.png", img.permute(1, 2, 0).numpy(), bits=8)
+    out = tmp_path / "dirs.lp"
+    assert main(["rig", "from-sphere", str(folder), "--out", str(out)]) == 0
+    assert "the sphere found at (101.3, 88.6), radius 70.0 px" in capsys.readouterr().out
+    for found, true in zip(read_lp(out).directions, lights, strict=True):
+        assert _angle(found, true) < 1.0

@@ -10,6 +10,12 @@ the brightness-weighted mean of the sphere's normals over that region (weighted 
 normal space, so a highlight near the outline is not pulled by the outline's
 foreshortening).
 
+Without ``--sphere`` the outline is found in the photos (:func:`find_sphere`): circles
+in the mean of the photos are candidates, a candidate is a chrome sphere only if most
+photos show a small highlight inside it where a mirror-like sphere would (nearer its
+centre than sin 45° of its radius, for a light above the sample), and the outline is
+then fitted to a fraction of a pixel.
+
 Pixel coordinates: x is the column and y the row of a pixel's centre (the values an image
 viewer shows), as in ``--sphere CX,CY,R``. The directions are in matscan's frame (+y
 toward the image's top), as :mod:`matscan.capture.rti` writes them with ``y="up"``.
@@ -87,6 +93,12 @@ def highlight_weights(grey: Tensor, mask: Tensor, where: str, sphere: str) -> Te
     return (grey - level).clamp_min(0) * region
 
 
+def _read_linear(path: str | Path, encoding: str) -> Tensor:
+    data = read_image(path)
+    px = torch.from_numpy(np.ascontiguousarray(data.pixels)).permute(2, 0, 1)[:3]
+    return srgb_to_linear(px) if data.kind == "int" and encoding == "srgb" else px.float()
+
+
 def directions_from_sphere(
     photos: Sequence[str | Path], centre: tuple[float, float], radius: float, encoding: str = "srgb"
 ) -> list[tuple[float, float, float]]:
@@ -95,14 +107,172 @@ def directions_from_sphere(
         raise MatscanError(f"--sphere: radius {radius!r} must be a positive number of pixels")
     out = []
     for path in photos:
-        data = read_image(path)
-        px = torch.from_numpy(np.ascontiguousarray(data.pixels)).permute(2, 0, 1)[:3]
-        linear = srgb_to_linear(px) if data.kind == "int" and encoding == "srgb" else px
+        linear = _read_linear(path, encoding)
         d = highlight_direction(linear, centre, radius, str(path))
         if float(d[2]) <= 0:
             raise input_error(path, "the highlight is at the sphere's outline: the light is at or below the horizon")
         out.append((float(d[0]), float(d[1]), float(d[2])))
     return out
+
+
+# --- finding the sphere -----------------------------------------------------------------
+
+#: Photos are searched for the sphere at most this many pixels on their longer side (the
+#: outline is then fitted on the full-size mean of the photos).
+SEARCH_SIDE = 768
+#: The smallest sphere looked for, as a share of the photos' shorter side.
+MIN_RADIUS_SHARE = 0.03
+#: A highlight is the brightest spot on the sphere, at least this many times brighter
+#: there than its mean over the photos (it moves with the light), ...
+HIGHLIGHT_RATIO = 3.0
+#: ... covering at most this share of the sphere (a flat glossy surface's highlight is
+#: broad; a mirror-like sphere's is a small spot) ...
+HIGHLIGHT_AREA = 0.04
+#: ... at most this far from the centre, as a share of the radius: a mirror-like sphere
+#: seen from above shows a light above the horizon within sin 45° of its radius (at
+#: R·sin(θ/2), θ the light's angle from the view), with some allowance.
+HIGHLIGHT_REACH = 0.8
+#: A candidate is a chrome sphere when this share of the photos show such a highlight.
+HIGHLIGHT_PHOTOS = 0.5
+#: The outline is fitted from the steepest step of the mean image along this many rays.
+OUTLINE_RAYS = 720
+
+
+def find_sphere(
+    photos: Sequence[str | Path] | Tensor, encoding: str = "srgb", where: str = "photos"
+) -> tuple[float, float, float]:
+    """The outline (centre column, centre row, radius; pixels) of a mirror-like sphere
+    seen in photos of one scene under different lights: file paths, or linear images
+    (N, C, H, W). Raises a one-line error when no candidate passes (module doc)."""
+    n = len(photos)
+    if n < 3:
+        raise MatscanError(f"{where}: finding the sphere needs three photos or more; give --sphere CX,CY,R")
+    mean: Tensor | None = None
+    small = []
+    for i in range(n):
+        img = photos[i] if isinstance(photos, Tensor) else _read_linear(photos[i], encoding)
+        grey = img.double().mean(0)
+        if mean is not None and grey.shape != mean.shape:
+            raise MatscanError(f"{where}: the photos differ in size ({tuple(grey.shape)} and {tuple(mean.shape)})")
+        mean = grey / n if mean is None else mean + grey / n
+        h, w = grey.shape
+        factor = max(1, math.ceil(max(h, w) / SEARCH_SIDE))
+        small.append(torch.nn.functional.avg_pool2d(grey[None, None], factor, ceil_mode=True)[0, 0].float())
+    assert mean is not None
+    stack = torch.stack(small)  # (N, h, w), every photo reduced by ``factor``
+    candidates = _circle_candidates(stack.mean(0))
+    if not candidates:
+        raise MatscanError(f"{where}: no round outline found; give the sphere's place with --sphere CX,CY,R")
+    best = None
+    for cx, cy, r in candidates:
+        share = _highlight_share(stack, (cx, cy), r)
+        if share >= HIGHLIGHT_PHOTOS and (best is None or share > best[0]):
+            best = (share, cx, cy, r)
+    if best is None:
+        raise MatscanError(
+            f"{where}: no chrome sphere found (no round outline with a small highlight inside it in most "
+            "photos); give its place with --sphere CX,CY,R"
+        )
+    _, cx, cy, r = best
+    # from reduced pixels (block means) to the full-size pixel grid: centre x' = (x + 0.5)·f − 0.5
+    centre = ((cx + 0.5) * factor - 0.5, (cy + 0.5) * factor - 0.5)
+    return _fit_outline(mean, centre, r * factor, where)
+
+
+def _circle_candidates(mean: Tensor, most: int = 24) -> list[tuple[float, float, float]]:
+    """Circles (x, y, r; pixels) in an image: OpenCV's Hough transform in its two forms,
+    the one that ranks circles by how round their edges are (which finds a small sphere
+    beside a large round motif) first, then the one that ranks them by votes."""
+    top = float(torch.quantile(mean.flatten()[:: max(1, mean.numel() // 100_000)].float(), 0.99))
+    img = (mean / max(top, 1e-12) * 255).clamp(0, 255).to(torch.uint8).numpy()
+    img = cv2.GaussianBlur(img, (5, 5), 1.0)
+    side = min(img.shape)
+    low, high = max(4, round(MIN_RADIUS_SHARE * side)), side // 2
+    found = []
+    for method, dp, param1, param2 in ((cv2.HOUGH_GRADIENT_ALT, 1.5, 100, 0.7), (cv2.HOUGH_GRADIENT, 1, 60, 20)):
+        circles = cv2.HoughCircles(
+            img, method, dp=dp, minDist=max(2.0, low), param1=param1, param2=param2, minRadius=low, maxRadius=high
+        )
+        if circles is not None:
+            found += [(float(x), float(y), float(r)) for x, y, r in circles[0][: most // 2]]
+    return found
+
+
+def _highlight_share(stack: Tensor, centre: tuple[float, float], radius: float) -> float:
+    """The share of photos (N, h, w) showing a small highlight inside the circle where a
+    mirror-like sphere shows a light above the horizon: the brightest spot inside it
+    (grown as :func:`highlight_weights` grows it) is small, within ``HIGHLIGHT_REACH`` of
+    the centre, and ``HIGHLIGHT_RATIO`` times that place's mean over the photos (it
+    moves with the light)."""
+    n, h, w = stack.shape
+    ys = torch.arange(h, dtype=torch.float32)[:, None]
+    xs = torch.arange(w, dtype=torch.float32)[None, :]
+    r2 = ((xs - centre[0]) ** 2 + (ys - centre[1]) ** 2) / radius**2
+    disc = r2 < INNER**2
+    if int(disc.sum()) < 9:
+        return 0.0
+    mean = stack.mean(0)
+    hits = 0
+    for i in range(n):
+        inside = torch.where(disc, stack[i], torch.full_like(stack[i], -math.inf))
+        row, col = divmod(int(inside.argmax()), w)
+        peak, floor = float(inside[row, col]), float(stack[i][disc].median())
+        if peak - floor < MIN_CONTRAST * max(peak, 1e-12) or float(r2[row, col]) > HIGHLIGHT_REACH**2:
+            continue
+        bright = (disc & (stack[i] > floor + HIGHLIGHT_FRACTION * (peak - floor))).numpy().astype(np.uint8)
+        _, labels = cv2.connectedComponents(bright, connectivity=8)
+        spot = torch.from_numpy(labels == labels[row, col])
+        if int(spot.sum()) > HIGHLIGHT_AREA * int(disc.sum()):
+            continue
+        hits += float(stack[i][spot].mean()) >= HIGHLIGHT_RATIO * float(mean[spot].mean())
+    return hits / n
+
+
+def _fit_outline(mean: Tensor, centre: tuple[float, float], radius: float, where: str) -> tuple[float, float, float]:
+    """The circle through the steepest step of ``mean`` along rays from an approximate
+    centre (within ±15% of the radius), fitted by least squares with outlying rays
+    dropped; twice, from the first fit's centre."""
+    h, w = mean.shape
+    img = mean.float()[None, None]
+    angles = torch.arange(OUTLINE_RAYS, dtype=torch.float64) * (2 * math.pi / OUTLINE_RAYS)
+    cx, cy, r = centre[0], centre[1], radius
+    for _ in range(3):
+        steps = torch.linspace(0.85, 1.15, 121, dtype=torch.float64) * r
+        x = cx + steps[None, :] * angles.cos()[:, None]  # (rays, steps)
+        y = cy + steps[None, :] * angles.sin()[:, None]
+        grid = torch.stack([(x + 0.5) / w * 2 - 1, (y + 0.5) / h * 2 - 1], dim=-1).float()[None]
+        prof = torch.nn.functional.grid_sample(img, grid, align_corners=False, padding_mode="border")[0, 0].double()
+        ok = ((x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)).all(1)
+        d = prof[:, 2:] - prof[:, :-2]  # central differences at steps 1 .. len − 2
+        sign = 1.0 if float(d[ok].sum(1).median()) >= 0 else -1.0
+        d = d * sign
+        j = d.argmax(1)
+        jj = j.clamp(1, d.shape[1] - 2)
+        a, b, c = d.gather(1, (jj - 1)[:, None]), d.gather(1, jj[:, None]), d.gather(1, (jj + 1)[:, None])
+        denom = (a - 2 * b + c).squeeze(1)
+        offset = torch.where(denom < 0, 0.5 * (a - c).squeeze(1) / denom, torch.zeros_like(denom)).clamp(-1, 1)
+        pos = jj.double() + 1 + offset  # index into ``steps``
+        rad = steps[0] + pos * (steps[1] - steps[0])
+        px, py = cx + rad * angles.cos(), cy + rad * angles.sin()
+        keep = ok & (j > 0) & (j < d.shape[1] - 1) & (b.squeeze(1) > 0)
+        for _ in range(3):
+            if int(keep.sum()) < OUTLINE_RAYS // 4:
+                raise MatscanError(f"{where}: the sphere's outline is too faint to fit; give --sphere CX,CY,R")
+            cx, cy, r = _circle_lsq(px[keep], py[keep])
+            resid = ((px - cx) ** 2 + (py - cy) ** 2).sqrt() - r
+            spread = float(resid[keep].abs().median()) * 1.4826 + 0.05
+            keep = keep & (resid.abs() < 3 * spread)
+    if not (0 <= cx < w and 0 <= cy < h):
+        raise MatscanError(f"{where}: the sphere's fitted centre lies outside the photos; give --sphere CX,CY,R")
+    return float(cx), float(cy), float(r)
+
+
+def _circle_lsq(x: Tensor, y: Tensor) -> tuple[float, float, float]:
+    """The circle through points in the algebraic least-squares sense (Kåsa): x² + y² =
+    2ax + 2by + c, radius √(c + a² + b²)."""
+    design = torch.stack([2 * x, 2 * y, torch.ones_like(x)], dim=1)
+    a, b, c = torch.linalg.lstsq(design, x * x + y * y).solution.tolist()
+    return a, b, math.sqrt(max(c + a * a + b * b, 0.0))
 
 
 # --- near lights: positions from two (or more) spheres at known places ---------------------
