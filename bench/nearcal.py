@@ -21,7 +21,10 @@ self-calibrated intensities ("gains") and the estimated positions too ("+positio
 the four come back within 2 mm (the leather's relief leaves too few usable pixels); with
 the materials' own specular they do not (docs/rti.md gives the numbers).
 
-Run by hand: .venv/bin/python bench/nearcal.py [--matte] [SIZE]   (default 128)
+``--prior=K`` adds K × Σ (offset / 5 mm)² to the (scaled) misfit, a pull toward the rig
+file's places; ``--only=NAME`` runs one material.
+
+Run by hand: .venv/bin/python bench/nearcal.py [--matte] [--prior=K] [--only=NAME] [SIZE]   (default 128)
 """
 
 from __future__ import annotations
@@ -63,8 +66,9 @@ def shading(pos: torch.Tensor, exponent: torch.Tensor, ref_mm: float, pts: torch
     return (ref_mm**2 / d2 * lobe)[..., None] * l
 
 
-def varpro_positions(cap: Capture, fit, rounds: int = 6) -> torch.Tensor:
-    """Light positions (L, 3) minimising the Lambertian misfit with ρ·n projected out."""
+def varpro_positions(cap: Capture, fit, rounds: int = 6, prior: float = 0.0, tolerance_mm: float = 5.0) -> torch.Tensor:
+    """Light positions (L, 3) minimising the Lambertian misfit with ρ·n projected out,
+    plus ``prior`` × Σ (offset / tolerance_mm)² against the misfit at the rig file's places."""
     n = len(cap.files)
     lights = cap.lights
     with torch.no_grad():
@@ -94,14 +98,18 @@ def varpro_positions(cap: Capture, fit, rounds: int = 6) -> torch.Tensor:
         e = y - torch.einsum("npi,pi->np", s, b)
         return (wt * e * e).sum() / wt.sum()
 
-    scale = float(misfit())  # L-BFGS stops early on a misfit of order 1e-5 unless scaled
+    scale = float(misfit().detach())  # L-BFGS stops early on a misfit of order 1e-5 unless scaled
+
+    def objective() -> torch.Tensor:
+        return misfit() / scale + prior * (dz / tolerance_mm).square().sum()
+
     opt = torch.optim.LBFGS(
         [dz, log_gain], max_iter=200, line_search_fn="strong_wolfe", tolerance_grad=1e-12, tolerance_change=1e-15
     )
 
     def closure() -> torch.Tensor:
         opt.zero_grad()
-        loss = misfit() / scale
+        loss = objective()
         loss.backward()
         return loss
 
@@ -112,8 +120,13 @@ def varpro_positions(cap: Capture, fit, rounds: int = 6) -> torch.Tensor:
 
 def main() -> None:
     torch.set_num_threads(2)
-    args = [a for a in sys.argv[1:] if a != "--matte"]
+    prior = 0.0
+    for a in sys.argv[1:]:
+        if a.startswith("--prior="):
+            prior = float(a.split("=", 1)[1])
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
+    only = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--only=")]
     size = int(args[0]) if args else 128
     materials = [("paper", generate("paper", size, 1)), ("brick (photo)", photo_material("brick", size))]
     materials += [("leather", generate("leather", size, 1)), ("plastic", generate("plastic", size, 1))]
@@ -123,6 +136,8 @@ def main() -> None:
     t0 = time.perf_counter()
     print(f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal nominal  gains +positions (dB)")
     for i, (name, maps) in enumerate(materials):
+        if only and not name.startswith(only[0]):
+            continue
         if matte:
             maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
         gains = led_gains(100 + i)
@@ -138,7 +153,7 @@ def main() -> None:
         plain = reconstruct_capture(cap, cfg)
         g1, _ = estimate_gains(cap, cfg)
         gains_only = reconstruct_capture(with_gains(cap, g1), cfg)
-        pos = varpro_positions(with_gains(cap, g1), gains_only)
+        pos = varpro_positions(with_gains(cap, g1), gains_only, prior=prior)
         cap2 = replace(cap, lights=moved(nominal, pos - nominal.position))
         g2, _ = estimate_gains(cap2, cfg)
         both = reconstruct_capture(with_gains(cap2, g2), cfg)

@@ -313,29 +313,66 @@ def train(
 
 
 def load(path: str | Path) -> AnyRigNet:
-    """An AnyRigNet from a checkpoint or weights file."""
+    """An AnyRigNet from a checkpoint or weights file; a file that is not one is a
+    one-line error naming it."""
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    state = load_file(path)
+    from matscan.errors import input_error
+
+    try:
+        state = load_file(path)
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise input_error(path, f"is not a readable safetensors file ({str(exc).splitlines()[0][:120]})") from None
     state.pop("step", None)
     net = AnyRigNet()
-    net.load_state_dict(state)
+    try:
+        net.load_state_dict(state)
+    except RuntimeError:
+        expected = set(net.state_dict())
+        missing, extra = sorted(expected - set(state)), sorted(set(state) - expected)
+        what = f"lacks {missing[0]}" if missing else f"has {extra[0]}" if extra else "has tensors of other shapes"
+        raise input_error(path, f"is not an any-rig network's weights (it {what})") from None
     return net.eval()
 
 
-def predict_capture(net: AnyRigNet, capture) -> dict[str, Tensor]:
-    """The network's maps for a loaded capture of any rig (its size padded to a multiple
-    of 4 and cropped back)."""
+def predict_capture(
+    net: AnyRigNet, capture, tile: int = 512, overlap: int = 64, progress: bool = False
+) -> dict[str, Tensor]:
+    """The network's maps for a loaded capture of any rig. Images larger than ``tile``
+    go in overlapping tiles blended with linear ramps (the network sees about 40 px
+    around a pixel and pools nothing over the image, so a tile's maps are the whole
+    image's there), which bounds memory by the tile; each tile is padded to a multiple
+    of 4 and cropped back."""
+    from tqdm import tqdm
+
+    from matscan.reconstruct.networks import _ramp, _starts
     from matscan.render import surface_points
 
     h, w = capture.size
-    points = surface_points(capture.field_mm, (h, w))
-    ph, pw = (-h) % MULTIPLE, (-w) % MULTIPLE
+    tile = max(MULTIPLE, tile // MULTIPLE * MULTIPLE)
+    overlap = min(overlap, tile // 2)
+    out = {name: torch.zeros(c, h, w) for name, c in OUT_CHANNELS.items()}
+    weight = torch.zeros(1, h, w)
+    tiles = [(r, c) for r in _starts(h, tile, overlap) for c in _starts(w, tile, overlap)]
+    quiet = not progress or len(tiles) == 1
+    for r0, c0 in tqdm(tiles, desc="any-rig network", unit="tile", disable=quiet, leave=False):
+        th, tw = min(tile, h - r0), min(tile, w - c0)
+        points = surface_points(capture.field_mm, (th, tw), (r0, c0), (h, w))
+        ph, pw = (-th) % MULTIPLE, (-tw) % MULTIPLE
 
-    def inputs():
-        for i in range(len(capture.files)):
-            x = photo_input(capture.linear([i])[0], capture.lights.select([i]), points)
-            yield F.pad(x[None], (0, pw, 0, ph), mode="replicate")[0]
+        def inputs(r0=r0, c0=c0, th=th, tw=tw, points=points, ph=ph, pw=pw):
+            for i in range(len(capture.files)):
+                photo = capture.linear([i], rows=(r0, r0 + th), cols=(c0, c0 + tw))[0]
+                x = photo_input(photo, capture.lights.select([i]), points)
+                yield F.pad(x[None], (0, pw, 0, ph), mode="replicate")[0]
 
-    maps = net.predict(inputs())
-    return {k: v[:, :h, :w] for k, v in maps.items()}
+        maps = net.predict(inputs())
+        wr, wc = _ramp(th, overlap, r0 == 0, r0 + th >= h), _ramp(tw, overlap, c0 == 0, c0 + tw >= w)
+        wt = (wr[:, None] * wc[None])[None]
+        for name, t in maps.items():
+            out[name][:, r0 : r0 + th, c0 : c0 + tw] += t[:, :th, :tw] * wt
+        weight[:, r0 : r0 + th, c0 : c0 + tw] += wt
+    maps = {name: t.div_(weight) for name, t in out.items()}
+    maps["normal"] = maps["normal"] / maps["normal"].norm(dim=0, keepdim=True).clamp_min(1e-8)
+    return maps

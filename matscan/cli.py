@@ -126,6 +126,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
 
     cfg = ReconstructConfig(
         model=args.model,
+        anyrig=args.anyrig,
         refine=args.refine,
         solver=args.solver,
         refine_steps=args.steps,
@@ -492,6 +493,7 @@ def cmd_batch(args: argparse.Namespace) -> str:
 
     cfg = ReconstructConfig(
         model=args.model,
+        anyrig=args.anyrig,
         refine=args.refine,
         solver=args.solver,
         validate=args.validate,
@@ -643,6 +645,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("capture", metavar="CAPTURE", help="capture folder, or @sample for the built-in sample capture")
     p.add_argument("--out", required=True, metavar="OUT", help="output folder")
     p.add_argument("--model", default="default", help="shipped model name, a .safetensors file, or none")
+    p.add_argument(
+        "--anyrig",
+        default="none",
+        metavar="WEIGHTS|none",
+        help="an any-rig network (matscan train-anyrig's checkpoint) whose maps the solver starts from on rigs "
+        "the model does not read (another dome, a flash); default none: flat maps",
+    )
     p.add_argument(
         "--refine",
         default="auto",
@@ -916,6 +925,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--retry-failed", dest="retry_failed", action="store_true", help="run the failed captures again")
     p.add_argument("--redo", action="store_true", help="recompute every capture, finished ones too")
     p.add_argument("--model", default="default", help="shipped model name, a .safetensors file, or none")
+    p.add_argument("--anyrig", default="none", metavar="WEIGHTS|none", help="as for reconstruct")
     p.add_argument("--refine", default="auto", choices=["auto", "on", "off"], help="as for reconstruct")
     p.add_argument("--solver", default="lm", choices=["lm", "adam"], help="as for reconstruct")
     p.add_argument("--validate", type=non_negative_int, default=0, metavar="K", help="leave K photos out of each")

@@ -80,3 +80,96 @@ def test_it_learns_a_batch():
         opt.step()
     with torch.no_grad():
         assert float(loss(net(batch["x"], present), batch)) < 0.6 * first
+
+
+# --- inference over a whole capture, and reconstruct's --anyrig -------------------------
+
+
+def _rti_capture(tmp_path, size=(44, 58), count=9):
+    """A simulated capture of a 9-light directional dome (no dome24 network reads it)."""
+    from matscan.capture.folder import write_capture
+    from matscan.capture.rti import LightFile, rig_from_lp
+    from matscan.capture.virtual import CameraModel, simulate_images
+    from matscan.materials.procedural import generate
+
+    dirs = []
+    for k in range(count):
+        e, a = math.radians((20.0, 45.0, 70.0)[k % 3]), 2 * math.pi * k / count
+        dirs.append((math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)))
+    rig = rig_from_lp(LightFile(tuple(f"{k:02d}.png" for k in range(count)), tuple(dirs)), (58.0, 44.0))
+    maps = generate("leather", max(size), 4).crop(0, 0, *size)
+    photos = simulate_images(maps, rig.light_set(), rig.field_mm, CameraModel(read_noise=0.002), seed=1)
+    write_capture(tmp_path / "rti", photos, rig, light_indices=list(range(count)))
+    return tmp_path / "rti"
+
+
+def _weights(tmp_path):
+    from safetensors.torch import save_file
+
+    torch.manual_seed(5)
+    path = tmp_path / "anyrig.safetensors"
+    save_file(AnyRigNet().state_dict(), path)
+    return path
+
+
+def test_tiles_give_the_whole_image_maps(tmp_path):
+    """One tile over the whole capture is the network's forward pass on the stacked
+    inputs; overlapping tiles blend to nearly the same maps."""
+    import torch.nn.functional as F
+
+    from matscan.anyrig import load, predict_capture
+    from matscan.capture import load_capture
+
+    cap = load_capture(_rti_capture(tmp_path))
+    net = load(_weights(tmp_path))
+    h, w = cap.size
+    points = surface_points(cap.field_mm, (h, w))
+    x = torch.stack([photo_input(cap.linear([i])[0], cap.lights.select([i]), points) for i in range(9)])
+    x = F.pad(x, (0, (-w) % 4, 0, (-h) % 4), mode="replicate")
+    with torch.no_grad():
+        direct = net(x[None], torch.ones(1, 9))
+    whole = predict_capture(net, cap, tile=512)
+    tiled = predict_capture(net, cap, tile=24, overlap=12)
+    for key in whole:
+        torch.testing.assert_close(whole[key], direct[key][0, :, :h, :w], atol=1e-5, rtol=0)
+        assert float((tiled[key] - whole[key]).abs().mean()) < 0.01
+    torch.testing.assert_close(tiled["normal"].norm(dim=0), torch.ones(h, w), atol=1e-5, rtol=0)
+
+
+def test_reconstruct_starts_from_the_anyrig_network_where_the_dome24_networks_do_not_apply(tmp_path):
+    import json
+
+    from matscan.reconstruct import ReconstructConfig
+    from matscan.reconstruct.job import reconstruct
+
+    capture, weights = _rti_capture(tmp_path), _weights(tmp_path)
+    rec = reconstruct(capture, tmp_path / "a", ReconstructConfig(anyrig=str(weights)))
+    assert rec["start"] == "any-rig network" and rec["refined"]
+    assert any("starting refinement from the any-rig network's maps" in w for w in rec["warnings"])
+    assert json.loads((tmp_path / "a" / "matscan.json").read_text())["model"]["anyrig_file"].endswith(
+        "anyrig.safetensors"
+    )
+    plain = reconstruct(capture, tmp_path / "b", ReconstructConfig())
+    assert plain["start"] == "flat" and plain["model"]["anyrig_file"] is None
+    assert any("starting refinement from flat maps" in w for w in plain["warnings"])
+
+
+def test_bad_anyrig_weights_are_one_line_errors(tmp_path, capsys):
+    from safetensors.torch import save_file
+
+    from matscan.cli import main
+
+    capture = _rti_capture(tmp_path)
+    text = tmp_path / "notes.safetensors"
+    text.write_text("not weights")
+    foreign = tmp_path / "foreign.safetensors"
+    save_file({"encoder.weight": torch.zeros(2, 2)}, foreign)
+    for path, message in (
+        (tmp_path / "missing.safetensors", "no such weights file"),
+        (text, "is not a readable safetensors file"),
+        (foreign, "is not an any-rig network's weights"),
+    ):
+        code = main(["reconstruct", str(capture), "--out", str(tmp_path / "out"), "--anyrig", str(path)])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and message in err and len(err.splitlines()) == 1
+        assert not (tmp_path / "out" / "matscan.json").exists()

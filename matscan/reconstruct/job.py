@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
@@ -42,6 +42,9 @@ from matscan.reconstruct.solver import flat_start, refine_maps, rerender_error, 
 from matscan.reconstruct.surface import alpha_from_backlight, height_from_normals
 from matscan.render import render_maps
 
+if TYPE_CHECKING:
+    from matscan.anyrig import AnyRigNet
+
 REFINE_CHOICES = ("auto", "on", "off")
 #: The self-calibration's light scales, as a calibration file later captures can name.
 SELF_CALIBRATION = "self_calibration.json"
@@ -53,6 +56,7 @@ class ReconstructConfig:
     """How a capture is reconstructed."""
 
     model: str = "default"
+    anyrig: str = "none"  # an any-rig network's weights file, to start from on rigs the model does not read
     refine: str = "auto"  # "auto": by photo count and evidence (reconstruct_capture); "on"; "off"
     solver: str = "lm"  # "lm": second-order, with confidence maps; "adam": first-order (fits emissive too)
     lm: SolverConfig = SolverConfig()
@@ -117,6 +121,7 @@ class Result:
     refined: bool = False
     confidence: dict[str, Tensor] = field(default_factory=dict)
     choice: dict[str, Any] | None = None  # what ``--refine auto`` compared, when it compared
+    start: str = "flat"  # what the maps started from: "networks", "any-rig network" or "flat"
     light_gains: Tensor | None = None  # (N, 3) per-photo gains found by self-calibration
     self_calibration: dict[str, Any] | None = None  # its record
 
@@ -237,18 +242,27 @@ def networks_misfit(nets: MapNets, capture: Capture) -> str | None:
 
 
 def reconstruct_capture(
-    capture: Capture, cfg: ReconstructConfig = ReconstructConfig(), nets: MapNets | None = None, progress: bool = False
+    capture: Capture,
+    cfg: ReconstructConfig = ReconstructConfig(),
+    nets: MapNets | None = None,
+    progress: bool = False,
+    anyrig: AnyRigNet | None = None,
 ) -> Result:
     """Maps from a loaded capture (no files written). Networks that do not fit the
-    capture's rig (:func:`networks_misfit`) are set aside with a warning: the solver
-    then starts from flat maps."""
+    capture's rig (:func:`networks_misfit`) are set aside with a warning. Without
+    networks the solver starts from the maps of ``anyrig`` (an any-rig network, which
+    reads any rig) when given, else from flat maps, and refines them (``refine`` "auto"
+    or "on") held near them with the flat start's weak prior (``FLAT_START_PRIOR``;
+    docs/rti.md measures both starts)."""
     if cfg.self_calibrate:
         from matscan.reconstruct.selfcal import estimate_gains, with_gains
 
         t0 = time.perf_counter()
         gains, record = estimate_gains(capture, cfg)
         seconds = time.perf_counter() - t0
-        result = reconstruct_capture(with_gains(capture, gains), replace(cfg, self_calibrate=False), nets, progress)
+        result = reconstruct_capture(
+            with_gains(capture, gains), replace(cfg, self_calibrate=False), nets, progress, anyrig
+        )
         result.light_gains, result.self_calibration = gains, record
         result.timings["self_calibration_s"] = seconds
         return result
@@ -272,18 +286,24 @@ def reconstruct_capture(
     timings: dict[str, float] = {}
     warnings = check_capture(capture, cfg)
     if misfit is not None:
-        warnings.append(f"{misfit}; starting refinement from flat maps")
+        begin = "the any-rig network's maps" if anyrig is not None else "flat maps"
+        warnings.append(f"{misfit}; starting refinement from {begin}")
     t0 = time.perf_counter()
     if nets is not None:
-        start = predict_maps(nets, capture, cfg.tile, cfg.overlap, progress)
+        start, begun = predict_maps(nets, capture, cfg.tile, cfg.overlap, progress), "networks"
+    elif anyrig is not None:
+        from matscan.anyrig import predict_capture
+
+        start = MapSet(**predict_capture(anyrig, capture, cfg.tile, cfg.overlap, progress))
+        begun = "any-rig network"
     else:
-        start = flat_start(capture)
+        start, begun = flat_start(capture), "flat"
     timings["networks_s"] = time.perf_counter() - t0
     used_nets = nets is not None
     refine = cfg.refine == "on" or (
         cfg.refine == "auto" and (not used_nets or len(capture.files) >= REFINE_AUTO_PHOTOS[cfg.solver])
     )
-    result = Result(start, warnings, timings)
+    result = Result(start, warnings, timings, start=begun)
     if refine and cfg.solver == "lm" and not cfg.emissive:
         t0 = time.perf_counter()
         strength = 1.0 if used_nets else FLAT_START_PRIOR
@@ -337,7 +357,9 @@ def subset_capture(capture: Capture, positions: list[int]) -> Capture:
     return capture.select(positions)
 
 
-def leave_out_validation(capture: Capture, count: int, cfg: ReconstructConfig, nets: MapNets | None) -> dict:
+def leave_out_validation(
+    capture: Capture, count: int, cfg: ReconstructConfig, nets: MapNets | None, anyrig: AnyRigNet | None = None
+) -> dict:
     """Self-validation without ground truth: reconstruct without ``count`` photos
     (spread evenly over the capture) and measure the re-rendering RMSE on them."""
     n = len(capture.files)
@@ -345,7 +367,7 @@ def leave_out_validation(capture: Capture, count: int, cfg: ReconstructConfig, n
         raise MatscanError(f"--validate: {count} must be between 1 and {n - 1} (the capture has {n} photos)")
     left = held_out_positions(n, count)
     kept = [i for i in range(n) if i not in left]
-    res = reconstruct_capture(subset_capture(capture, kept), cfg, nets)
+    res = reconstruct_capture(subset_capture(capture, kept), cfg, nets, anyrig=anyrig)
     record: dict[str, Any] = {
         "left_out": [capture.files[i] for i in left],
         "rmse_left_out": rerender_error(res.maps, capture, left, res.intensity_scale),
@@ -420,12 +442,14 @@ def reconstruct(
     from matscan.calibrate import apply_calibration
     from matscan.outputs import capture_inputs, claim_output
     from matscan.samples import capture_folder
-    from matscan.weights import model_path
+    from matscan.weights import anyrig_path, model_path
 
     capture_path = capture_folder(capture_path)
     inputs = capture_inputs(capture_path)
     if cfg.model != "none":
         inputs.append(model_path(cfg.model))
+    if cfg.anyrig != "none":
+        inputs.append(anyrig_path(cfg.anyrig))
     with claim_output(out, "reconstruct", inputs, overwrite=overwrite, overwrite_any=overwrite_any) as claim:
         capture = apply_calibration(load_capture(capture_path))
         h, w = capture.size
@@ -438,8 +462,14 @@ def reconstruct(
             nets, model_meta = load_model(cfg.model)
             file = model_path(cfg.model).resolve()  # relative to this folder, so the record moves with it
             model_name, networks = os.path.relpath(file, claim.path), training_record(model_meta)
-        validation = leave_out_validation(capture, cfg.validate, cfg, nets) if cfg.validate else None
-        res = reconstruct_capture(capture, cfg, nets, progress)
+        anyrig, anyrig_name = None, None
+        if cfg.anyrig != "none" and (nets is None or networks_misfit(nets, capture) is not None):
+            from matscan.weights import load_anyrig
+
+            anyrig = load_anyrig(cfg.anyrig)
+            anyrig_name = os.path.relpath(anyrig_path(cfg.anyrig).resolve(), claim.path)
+        validation = leave_out_validation(capture, cfg.validate, cfg, nets, anyrig) if cfg.validate else None
+        res = reconstruct_capture(capture, cfg, nets, progress, anyrig)
         if res.light_gains is not None:  # the photos as the fit saw them, for every number below
             from matscan.reconstruct.selfcal import with_gains
 
@@ -458,7 +488,8 @@ def reconstruct(
             "size_px": [w, h],
             "field_mm": list(capture.field_mm),
             "mm_per_pixel": list(capture.mm_per_pixel),
-            "model": {"name": cfg.model, "file": model_name, "networks": networks},
+            "model": {"name": cfg.model, "file": model_name, "networks": networks, "anyrig_file": anyrig_name},
+            "start": res.start,
             "config": asdict(cfg),
             "refined": res.refined,
             "solver": cfg.solver if res.refined else None,

@@ -40,3 +40,22 @@ def load_model(name_or_path: str | Path = "default"):
     from matscan.weights.format import load_weights
 
     return load_weights(model_path(name_or_path))
+
+
+def anyrig_path(path: str | Path) -> Path:
+    """The weights file of an any-rig network (:mod:`matscan.anyrig`; none is shipped yet:
+    docs/rti.md says why), checked to exist."""
+    text = str(path)
+    if not text or not text.isprintable():
+        raise MatscanError(f"anyrig: {short_repr(text)} is not a usable file name")
+    if not Path(text).is_file():
+        raise MatscanError(f"anyrig: no such weights file {text!r} (an any-rig checkpoint, or none)")
+    return Path(text)
+
+
+def load_anyrig(path: str | Path):
+    """The any-rig network (eval mode) of a weights or checkpoint file; a damaged or
+    foreign file is a one-line error naming it."""
+    from matscan.anyrig import load
+
+    return load(anyrig_path(path))
