@@ -66,6 +66,7 @@ class DataConfig:
     mix_prob: float = 0.3
     library: tuple[str, ...] = ()
     library_prob: float = 0.5
+    library_metal_prob: float = 0.0
     subsets: str = "random"  # "random", or a subset name / list like "6" or "0,4,8" for every sample
     named_subset_prob: float = 0.5
     exposure_jitter: float = 0.05
@@ -112,6 +113,55 @@ def mix_materials(a: MapSet, b: MapSet, g: torch.Generator) -> MapSet:
     return MapSet(**out)
 
 
+#: Metal colours, linear F0 at normal incidence (Hoffman, "Physics and Math of Shading",
+#: SIGGRAPH 2013): gold, silver, aluminium, iron, copper, chromium, nickel, titanium.
+METAL_F0 = (
+    (1.000, 0.766, 0.336),
+    (0.972, 0.960, 0.915),
+    (0.913, 0.922, 0.924),
+    (0.562, 0.565, 0.578),
+    (0.955, 0.638, 0.538),
+    (0.550, 0.556, 0.554),
+    (0.660, 0.609, 0.526),
+    (0.542, 0.497, 0.449),
+)
+
+
+def metallize(maps: MapSet, g: torch.Generator) -> MapSet:
+    """A map set mixed, through a smooth noise mask m, with a fully metallic version of
+    itself (foil, print, bare patches): there diffuse is black and F0 a tabled metal's
+    colour times 0.6–1 of the map's albedo structure (glTF's metallic = 1,
+    ``matscan.brdf.metallic_to_specular``), and roughness is scaled by 0.25–0.8
+    (polished); each map is lerp(map, metal map, m), as :func:`mix_materials` blends.
+    Normals, alpha and emission are kept. A fifth of the time the whole crop is metal;
+    else the mask covers 20–80 % of it.
+
+    Photo-built map sets (``tools/photo_library.py``) are all dielectric (F0 0.04);
+    without this a network trained on them learns to predict 0.04 on metals too."""
+    from matscan.brdf import metallic_to_specular
+
+    size = maps.size[0]
+    if _u(g) < 0.2:
+        m = torch.ones(1, *maps.size)
+    else:
+        n = spectral_noise(size, g, 0.03 + 0.2 * _u(g))
+        t = float(torch.quantile(n.flatten(), 0.2 + 0.6 * _u(g)))
+        m = smoothstep(t - 0.1, t + 0.1, n)[None]
+    metal = torch.tensor(METAL_F0[int(torch.randint(len(METAL_F0), (), generator=g))])[:, None, None]
+    lum = maps.diffuse.mean(0, keepdim=True)
+    structure = 0.6 + 0.4 * lum / lum.amax().clamp_min(1e-6)
+    metal_diffuse, metal_specular = metallic_to_specular((metal * structure).clamp(0, 1), torch.ones_like(lum))
+    roughness = (maps.roughness * (0.25 + 0.55 * _u(g))).clamp(0.05, 1)
+    return MapSet(
+        diffuse=torch.lerp(maps.diffuse, metal_diffuse, m),
+        specular=torch.lerp(maps.specular, metal_specular, m),
+        roughness=torch.lerp(maps.roughness, roughness, m),
+        normal=maps.normal,
+        alpha=maps.alpha,
+        emissive=maps.emissive,
+    )
+
+
 def composite_over_stage(maps: MapSet) -> MapSet:
     """Maps as the camera sees them where alpha < 1: the dark stage shows through."""
     if maps.alpha is None:
@@ -152,7 +202,10 @@ class SvbrdfDataset(Dataset):
     def _material(self, g: torch.Generator, size: int, mm_per_px: float) -> MapSet:
         if self.library and _u(g) < self.config.library_prob:
             k = int(torch.randint(len(self.library), (), generator=g))
-            return self._library_crop(k, g, size)
+            maps = self._library_crop(k, g, size)
+            if self.config.library_metal_prob > 0 and _u(g) < self.config.library_metal_prob:
+                maps = metallize(maps, g)
+            return maps
         seed = int(torch.randint(0, 2**40, (), generator=g))
         return random_material(size, seed, mm_per_px, self.config.prior)[1]
 

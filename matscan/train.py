@@ -112,6 +112,7 @@ class TrainConfig:
     prefetch: int = 4  # batches each data worker prepares ahead
     library: tuple[str, ...] = ()  # map set folders drawn instead of the prior (tools/photo_library.py)
     library_prob: float = 0.5  # the share of samples drawn from them, when given
+    library_metal_prob: float = 0.0  # the share of those given metal patches (matscan.data.metallize)
 
     @staticmethod
     def from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
@@ -157,6 +158,8 @@ def data_config(cfg: TrainConfig) -> DataConfig:
             raise input_error(folder, "no such map set folder (library)")
     if not 0 <= cfg.library_prob <= 1:
         raise MatscanError(f"library_prob: {cfg.library_prob!r} must be between 0 and 1")
+    if not 0 <= cfg.library_metal_prob <= 1:
+        raise MatscanError(f"library_metal_prob: {cfg.library_metal_prob!r} must be between 0 and 1")
     return DataConfig(
         rig=cfg.rig,
         crop=cfg.crop,
@@ -164,6 +167,7 @@ def data_config(cfg: TrainConfig) -> DataConfig:
         prior=cfg.prior,
         library=cfg.library,
         library_prob=cfg.library_prob,
+        library_metal_prob=cfg.library_metal_prob,
     )
 
 

@@ -118,3 +118,50 @@ def test_a_training_config_draws_from_a_library_and_refuses_a_missing_one(tmp_pa
         data_config(TrainConfig.from_dict({"library": [str(tmp_path / "missing")]}))
     with pytest.raises(MatscanError, match="library_prob"):
         data_config(TrainConfig(library_prob=1.5))
+
+
+def test_metallize_follows_the_gltf_metallic_rules_where_it_puts_metal():
+    """Each pixel of a metallized photo map set is the photo rule's dielectric mixed at
+    some m in [0, 1] with a glTF full metal (spec. Appendix B at metallic 1: diffuse 0,
+    F0 the base colour): diffuse = albedo (1 − m), F0 = 0.04 (1 − m) + base m, with base
+    a tabled metal colour times 0.6–1 of structure. m is solved per pixel from the
+    diffuse, then the base from F0."""
+    from matscan.data import METAL_F0, metallize
+
+    photo = torch.rand(3, 48, 48, generator=torch.Generator().manual_seed(4)) * 0.8 + 0.1
+    maps = maps_from_photo(photo)
+    full = partial = 0
+    for seed in range(12):
+        out = metallize(maps, torch.Generator().manual_seed(seed))
+        assert torch.equal(out.normal, maps.normal)
+        assert (out.roughness <= maps.roughness + 1e-6).all() and (out.roughness >= 0.05 - 1e-6).all()
+        m3 = 1 - out.diffuse / maps.diffuse  # the metalness, from diffuse = base (1 − m)
+        assert (m3.amax(0) - m3.amin(0)).max() < 1e-5 and (m3 > -1e-6).all() and (m3 < 1 + 1e-6).all()
+        m = m3.mean(0)
+        base = (out.specular - 0.04 * (1 - m)) / m.clamp_min(1e-12)  # F0 = 0.04 (1 − m) + base m
+        assert torch.allclose(out.specular[:, m < 1e-7], torch.tensor(0.04), atol=1e-5)
+        metal = m > 1e-3
+        if metal.any():
+            b = base[:, metal]  # (3, N): one metal's colour at 0.6 to 1 of its value
+            match = [c for c in METAL_F0 if torch.allclose(b / b.amax(0), torch.tensor(c)[:, None] / max(c), atol=2e-3)]
+            assert len(match) >= 1, f"seed {seed}: base colour {b[:, 0]} is no tabled metal's"
+            scale = b / torch.tensor(match[0])[:, None]
+            assert (scale >= 0.6 - 1e-3).all() and (scale <= 1 + 1e-3).all()
+        full += int((m > 1 - 1e-6).all())
+        partial += int(metal.any() and (m < 1e-7).any())
+    assert full >= 1 and partial >= 1  # both kinds of sample occur
+
+
+def test_a_library_run_can_give_a_share_of_its_samples_metal(tmp_path):
+    from matscan.data import SvbrdfDataset
+    from matscan.mapset import write_mapset
+    from matscan.train import TrainConfig, data_config
+
+    photo = torch.rand(3, 64, 64, generator=torch.Generator().manual_seed(2))
+    folder = write_mapset(tmp_path / "rock", maps_from_photo(photo))
+    cfg = TrainConfig.from_dict({"library": [str(folder)], "library_prob": 1.0, "library_metal_prob": 1.0, "crop": 32})
+    data = data_config(cfg)
+    sample = SvbrdfDataset(replace(data, compile=False))[0]
+    assert sample["specular"].max() > 0.3  # a metal's F0, where the photo rule gives 0.04 everywhere
+    with pytest.raises(MatscanError, match="library_metal_prob"):
+        data_config(TrainConfig(library_metal_prob=-0.1))

@@ -33,6 +33,7 @@ from pathlib import Path
 import torch
 
 from matscan.evaluate import subset_table
+from matscan.materials.procedural import PRIORS
 from matscan.train import CHECKPOINT, _metadata, export_weights, load_weights
 from matscan.weights import ROOT, SHIPPED
 
@@ -223,8 +224,19 @@ def main() -> int:
         + {"median": "median", "lower_third": "lower-third order statistic"}[net["photo_statistic"]]
         + " of those ratios over the photos present (the `cpu` preset's `diffuse_from_photos` and "
         "`photo_statistic`; the `paper` preset keeps G_d plain).",
-        f"- Data: procedural materials of `matscan.materials` (14 families, mixed as in Deschaintre et al. 2018), "
-        f"{cfg['crop']}² crops anywhere in the dome24 field, random light subsets (Table 4 subsets half the time), "
+        "- Data"
+        + (" in this run (the runs before it: their `config.json`)" if "init" in meta else "")
+        + ": procedural materials of `matscan.materials` ("
+        + (f"prior `{cfg.get('prior', 'v1')}`, {sum(w > 0 for w in PRIORS[cfg.get('prior', 'v1')].values())} families")
+        + ", mixed as in Deschaintre et al. 2018)"
+        + (
+            f" and, in {cfg.get('library_prob', 0.5):.0%} of this run's samples, the {len(cfg['library'])} "
+            "photo-built map sets of `tools/photo_library.py` (texture photographs of a Debian package, "
+            "never the evaluation photos)"
+            if cfg.get("library")
+            else ""
+        )
+        + f", {cfg['crop']}² crops anywhere in the dome24 field, random light subsets (Table 4 subsets half the time), "
         "calibration jitter, Poisson–Gaussian noise, 8-bit sRGB or 16-bit linear quantisation; rendered on the fly.",
         f"- Optimiser: Adam, lr {cfg['lr']:g}"
         + (" in this run (the runs before it, with theirs: README.md, Development)" if "init" in meta else "")

@@ -1,0 +1,79 @@
+"""The networks alone on the 8 map sets unlike the training set, fast (seconds, not the study's half hour).
+
+For each weights file and each dome24 Table 4 count (1, 2, 3, 6, 24): the mean over the 5
+artist-style and 3 texture-photograph map sets (``matscan.materials.artist`` and
+``photos``, never used in training) at SIZE² of the novel-light RMSE (16 lights the rig
+does not have, ``matscan.evaluate.evaluation_lights``), and of the specular and roughness
+RMSE. Captures as ``bench/anyrig.py`` makes them (8-bit sRGB, noise, seed = set index).
+With ``--per-set COUNT`` it prints each set's numbers at that count instead.
+
+Run: .venv/bin/python tools/nets_unlike.py WEIGHTS [WEIGHTS ...] [--size 128] [--per-set 2]
+Weights that hold only some networks are scored with the shipped ones for the others
+(``export_weights(..., fill_from=...)`` first).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+
+from anyrig import capture_of  # noqa: E402
+
+from matscan.evaluate import evaluation_lights  # noqa: E402
+from matscan.materials.artist import ARTIST_NAMES, artist_material  # noqa: E402
+from matscan.materials.photos import TINTS, photo_material  # noqa: E402
+from matscan.reconstruct.networks import predict_maps  # noqa: E402
+from matscan.render import render_maps  # noqa: E402
+from matscan.rig import builtin_rig  # noqa: E402
+from matscan.weights.format import load_weights  # noqa: E402
+
+
+def rmse(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).square().mean().sqrt())
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("weights", nargs="+", type=Path)
+    parser.add_argument("--size", type=int, default=128)
+    parser.add_argument("--per-set", metavar="COUNT", help="each map set's numbers at this light count")
+    args = parser.parse_args()
+    torch.set_num_threads(2)
+    names = [f"artist-{n}" for n in ARTIST_NAMES] + [f"photo-{n}" for n in TINTS]
+    mats = [artist_material(n, args.size) for n in ARTIST_NAMES] + [photo_material(n, args.size) for n in TINTS]
+    dome = builtin_rig("dome24")
+    novel_lights = evaluation_lights(dome)
+    counts = [args.per_set] if args.per_set else ["1", "2", "3", "6", "24"]
+    for w in args.weights:
+        nets, _ = load_weights(w)
+        for count in counts:
+            rows = []
+            for i, m in enumerate(mats):
+                p = predict_maps(nets, capture_of(m, dome, dome.subset(count), seed=i))
+                with torch.no_grad():
+                    a = render_maps(p, novel_lights, dome.field_mm).clamp(0, 1)
+                    b = render_maps(m, novel_lights, dome.field_mm).clamp(0, 1)
+                rows.append((rmse(a, b), rmse(p.specular, m.specular), rmse(p.roughness, m.roughness)))
+                if args.per_set:
+                    print(
+                        f"{w.name} {count} {names[i]:22s} novel {rows[-1][0]:.4f} specular {rows[-1][1]:.4f} "
+                        f"(mean F0 {float(p.specular.mean()):.3f}, true {float(m.specular.mean()):.3f}) "
+                        f"roughness {rows[-1][2]:.4f}",
+                        flush=True,
+                    )
+            if not args.per_set:
+                mean = [sum(r[k] for r in rows) / len(rows) for k in range(3)]
+                print(
+                    f"{w.name} {count:>2} lights: novel {mean[0]:.4f} specular {mean[1]:.4f} roughness {mean[2]:.4f}",
+                    flush=True,
+                )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
