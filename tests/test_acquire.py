@@ -150,7 +150,16 @@ def test_sigint_stops_with_the_leds_off_and_says_how_to_resume(tmp_path):
     # can land after the last one (exit 0): then it is tried again in a fresh folder.
     for _attempt in range(3):
         shutil.rmtree(tmp_path / "cap", ignore_errors=True)
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # SIGINT back to its default in the child: a suite started in the background
+        # (`make test &`) runs with SIGINT ignored, and Python then never raises
+        # KeyboardInterrupt
+        proc = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
         deadline = time.monotonic() + 120
         while not (tmp_path / "cap" / "led_01.png").exists() and time.monotonic() < deadline:
             time.sleep(0.01)
