@@ -24,7 +24,10 @@
 #                  --platform manylinux2014_x86_64 -d wheels numpy opencv-python-headless safetensors tqdm
 #   WORKERS    data worker processes (12: about 27 samples/s each at crop 128, so
 #              ~320 samples/s, 10 steps/s of batch 32); BATCH (32); PREFETCH (2 per worker);
-#   LR (5e-5); MAPS (diffuse,specular,roughness,normal); PRIOR (v2); DEVICE (cuda).
+#   LR (5e-5); MAPS (diffuse,specular,roughness,normal); PRIOR (v2); DEVICE (cuda);
+#   INIT (matscan/weights/dome24-cpu.safetensors; set it empty to train from scratch, as
+#   the ablation does: INIT= tools/gpu_train.sh --out runs/ablation-gpu/one_encoder
+#   --minutes 9 --variant one_encoder --steps 1500).
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
@@ -37,7 +40,7 @@ MAPS=${MAPS:-diffuse,specular,roughness,normal}
 PRIOR=${PRIOR:-v2}
 DEVICE=${DEVICE:-cuda}
 WHEELS=${WHEELS:-wheels}
-INIT=matscan/weights/dome24-cpu.safetensors
+INIT=${INIT-matscan/weights/dome24-cpu.safetensors}
 
 OUT="" MINUTES=""
 ARGS=()

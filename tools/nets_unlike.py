@@ -3,8 +3,8 @@
 For each weights file and each dome24 Table 4 count (1, 2, 3, 6, 24): the mean over the 5
 artist-style and 3 texture-photograph map sets (``matscan.materials.artist`` and
 ``photos``, never used in training) at SIZE² of the novel-light RMSE (16 lights the rig
-does not have, ``matscan.evaluate.evaluation_lights``), and of the specular and roughness
-RMSE. Captures as ``bench/anyrig.py`` makes them (8-bit sRGB, noise, seed = set index).
+does not have, ``matscan.evaluate.evaluation_lights``), of the diffuse, specular and
+roughness RMSE and of the mean normal angle (``matscan.evaluate.map_scores``). Captures as ``bench/anyrig.py`` makes them (8-bit sRGB, noise, seed = set index).
 With ``--per-set COUNT`` it prints each set's numbers at that count instead.
 
 Run: .venv/bin/python tools/nets_unlike.py WEIGHTS [WEIGHTS ...] [--size 128] [--per-set 2]
@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
 
 from anyrig import capture_of  # noqa: E402
 
-from matscan.evaluate import evaluation_lights  # noqa: E402
+from matscan.evaluate import evaluation_lights, map_scores  # noqa: E402
 from matscan.materials.artist import ARTIST_NAMES, artist_material  # noqa: E402
 from matscan.materials.photos import TINTS, photo_material  # noqa: E402
 from matscan.reconstruct.networks import predict_maps  # noqa: E402
@@ -58,18 +58,20 @@ def main() -> int:
                 with torch.no_grad():
                     a = render_maps(p, novel_lights, dome.field_mm).clamp(0, 1)
                     b = render_maps(m, novel_lights, dome.field_mm).clamp(0, 1)
-                rows.append((rmse(a, b), rmse(p.specular, m.specular), rmse(p.roughness, m.roughness)))
+                s = map_scores(p, m)
+                rows.append((rmse(a, b), s["rmse_diffuse"], s["rmse_specular"], s["rmse_roughness"], s["normal_degrees"]))
                 if args.per_set:
                     print(
-                        f"{w.name} {count} {names[i]:22s} novel {rows[-1][0]:.4f} specular {rows[-1][1]:.4f} "
-                        f"(mean F0 {float(p.specular.mean()):.3f}, true {float(m.specular.mean()):.3f}) "
-                        f"roughness {rows[-1][2]:.4f}",
+                        f"{w.name} {count} {names[i]:22s} novel {rows[-1][0]:.4f} diffuse {rows[-1][1]:.4f} "
+                        f"specular {rows[-1][2]:.4f} (mean F0 {float(p.specular.mean()):.3f}, "
+                        f"true {float(m.specular.mean()):.3f}) roughness {rows[-1][3]:.4f} normal {rows[-1][4]:.2f}°",
                         flush=True,
                     )
             if not args.per_set:
-                mean = [sum(r[k] for r in rows) / len(rows) for k in range(3)]
+                mean = [sum(r[k] for r in rows) / len(rows) for k in range(5)]
                 print(
-                    f"{w.name} {count:>2} lights: novel {mean[0]:.4f} specular {mean[1]:.4f} roughness {mean[2]:.4f}",
+                    f"{w.name} {count:>2} lights: novel {mean[0]:.4f} diffuse {mean[1]:.4f} specular {mean[2]:.4f} "
+                    f"roughness {mean[3]:.4f} normal {mean[4]:.2f}°",
                     flush=True,
                 )
     return 0
