@@ -49,7 +49,7 @@ import math
 import os
 import signal
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -340,6 +340,7 @@ def export_weights(
     extra: dict[str, str] | None = None,
     dtype: torch.dtype = torch.float32,
     fill_from: Path | None = None,
+    take: Sequence[str] | None = None,
 ) -> Path:
     """Weights only (no optimizer state) with what is needed to rebuild the networks,
     stored as ``dtype`` (float16 halves the file; they load into float32 networks).
@@ -349,17 +350,27 @@ def export_weights(
     retrain one, e.g. G_d after a change of ``photo_statistic``). The file then holds
     every network of both; its ``maps`` metadata names them and ``networks`` says, per
     network, how many steps and seconds of training are behind it and where it came from.
+
+    ``take``: the run's networks to export (default: all it trained); with ``fill_from``
+    the others come from there, e.g. a run that improved G_d and G_n but not G_s and G_g.
     """
     meta = _metadata(checkpoint)
     cfg = TrainConfig.from_dict(json.loads(meta["config"]), str(checkpoint))
     net = net_config_of(meta, cfg)
-    tensors = {k.removeprefix("model."): v for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")}
-    networks = {m: {**r, "from": str(checkpoint)} for m, r in training_record(meta).items()}
+    own = tuple(cfg.maps) if take is None else tuple(take)
+    if not own or not set(own) <= set(cfg.maps):
+        asked, trained = ", ".join(own) or "nothing", ", ".join(cfg.maps)
+        raise input_error(checkpoint, f"take: {asked} is not among the networks it trained ({trained})")
+    if cfg.variant != "four" and set(own) != set(cfg.maps):
+        raise input_error(checkpoint, "only the four independent networks (variant four) can be taken apart")
+    stored = {k.removeprefix("model."): v for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")}
+    tensors = {k: v for k, v in stored.items() if not k.startswith("nets.") or k.split(".")[1] in own}
+    networks = {m: {**r, "from": str(checkpoint)} for m, r in training_record(meta).items() if m in own}
     if fill_from is not None:
         fill_meta = _metadata(fill_from)
         fill_cfg = _config_of(fill_meta, fill_from)
         fill_net = net_config_of(fill_meta, fill_cfg)
-        fill_maps = [m for m in fill_meta.get("maps", ",".join(fill_cfg.maps)).split(",") if m not in cfg.maps]
+        fill_maps = [m for m in fill_meta.get("maps", ",".join(fill_cfg.maps)).split(",") if m not in own]
         if cfg.variant != "four" or fill_cfg.variant != "four":
             raise input_error(fill_from, "only the four independent networks (variant four) can be combined")
         # photo_statistic shapes G_d's input only: other networks may come from a run with another

@@ -186,6 +186,36 @@ def test_export_fills_the_networks_a_run_did_not_train(tmp_path):
         assert own[name]["elapsed_seconds"] == round(run + record[name]["elapsed_seconds"], 1)
 
 
+def test_export_takes_some_of_a_runs_networks_and_fills_the_others(tmp_path):
+    full = TrainConfig(**{**CFG.__dict__, "val_every": 0})
+    train(full, tmp_path / "b", max_steps=2, progress=False)
+    init = tmp_path / "b" / CHECKPOINT
+    train(TrainConfig(**{**full.__dict__, "init": str(init)}), tmp_path / "c", max_steps=1, progress=False)
+    run = tmp_path / "c" / CHECKPOINT
+    out = export_weights(run, tmp_path / "w.safetensors", fill_from=init, take=("diffuse", "normal"))
+    nets, meta = load_weights(out)
+    assert nets.maps == MAPS
+    b_nets, _ = load_weights(init)
+    c_nets, _ = load_weights(run)
+    for name in MAPS:
+        source = c_nets if name in ("diffuse", "normal") else b_nets
+        other = b_nets if source is c_nets else c_nets
+        for pa, pb in zip(nets.nets[name].parameters(), source.nets[name].parameters(), strict=True):
+            torch.testing.assert_close(pa, pb, rtol=0, atol=0)
+        # the run moved every network, so taking the wrong one would show
+        pairs = zip(nets.nets[name].parameters(), other.nets[name].parameters(), strict=True)
+        assert any(not torch.equal(pa, po) for pa, po in pairs)
+    record = training_record(meta)
+    assert (record["diffuse"]["steps"], record["normal"]["steps"]) == (3, 3)
+    assert (record["specular"]["steps"], record["roughness"]["steps"]) == (2, 2)
+    assert record["diffuse"]["from"] == str(run) and record["specular"]["from"] == str(init)
+    # without a fill the file has the networks taken, and nothing else
+    alone, _ = load_weights(export_weights(run, tmp_path / "t.safetensors", take=("normal",)))
+    assert alone.maps == ("normal",)
+    with pytest.raises(MatscanError, match="take: gloss is not among the networks it trained"):
+        export_weights(run, tmp_path / "x.safetensors", take=("gloss",))
+
+
 def test_files_without_a_net_config_load_with_the_median(tmp_path):
     cfg = TrainConfig(preset="cpu")
     nets = build_nets(cfg)

@@ -6,7 +6,7 @@ same procedural materials, never used in training, and writes the table into
 docs/model-card.md together with how the weights were trained (from the weights'
 own metadata and the run's log).
 
-Run: .venv/bin/python tools/model_card.py runs/dome24-cpu [count] [--fill FILE]
+Run: .venv/bin/python tools/model_card.py runs/dome24-cpu [count] [--fill FILE] [--take MAPS]
 (writes matscan/weights/dome24-cpu.safetensors and docs/model-card.md)
 
 The card's second table, on materials unlike the training set, comes from a study:
@@ -18,6 +18,7 @@ for other weights keeps the section marked stale until the study is re-run).
 A run that trained only some of the four networks (``matscan train --maps``) is
 completed with the others of ``--fill`` (default: the weights the run started
 from, its ``init``); the card says, per network, how much training is behind it.
+``--take diffuse,normal`` ships only those networks of the run, the others from ``--fill``.
 """
 
 from __future__ import annotations
@@ -158,6 +159,7 @@ def main() -> int:
     parser.add_argument("run", type=Path, nargs="?")
     parser.add_argument("count", type=int, nargs="?", default=64, help="validation materials (default 64)")
     parser.add_argument("--fill", type=Path, default=None, help="weights of the networks the run did not train")
+    parser.add_argument("--take", default=None, help="ship only these networks of the run, e.g. diffuse,normal")
     parser.add_argument("--unlike", type=Path, help="rewrite only the unlike-the-training-set section from this study")
     args = parser.parse_args()
     if args.unlike:
@@ -171,11 +173,12 @@ def main() -> int:
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
     run_meta = _metadata(run / CHECKPOINT)
     fill = args.fill
-    if fill is None and len(json.loads(run_meta["config"])["maps"]) < 4:
+    take = args.take.split(",") if args.take else None
+    if fill is None and len(take or json.loads(run_meta["config"])["maps"]) < 4:
         fill = Path(run_meta["init"])
         if not fill.is_file():
             sys.exit(f"{fill}: the weights this run started from are needed for the networks it did not train (--fill)")
-    weights = export_weights(run / CHECKPOINT, ROOT / SHIPPED["default"], {"run": str(run)}, fill_from=fill)
+    weights = export_weights(run / CHECKPOINT, ROOT / SHIPPED["default"], {"run": str(run)}, fill_from=fill, take=take)
     weights.chmod(0o644)
     nets, meta = load_weights(weights)
     cfg = json.loads(meta.get("train_config") or meta["config"])
@@ -200,6 +203,7 @@ def main() -> int:
             f"{meta.get('init_photo_statistic', '').replace('_', ' ')}"
         )
     params = sum(p.numel() for p in nets.parameters())
+    options = (f" --fill {args.fill}" if args.fill else "") + (f" --take {args.take}" if args.take else "")
     train_cmd = (
         f"matscan train --out {run} --minutes M"
         + (f" --maps {','.join(cfg['maps'])}" if len(cfg["maps"]) < 4 else "")
@@ -215,7 +219,7 @@ def main() -> int:
         "## How it was trained",
         "",
         f"- Command: `{train_cmd}` (resumed across sessions; the run's `config.json` holds every setting), "
-        f"then `tools/model_card.py {run}" + (f" --fill {args.fill}" if args.fill else "") + "`.",
+        f"then `tools/model_card.py {run}" + options + "`.",
         f"- Networks: the paper's U-Net with global skip connections, preset `{cfg['preset']}` "
         f"(variant `{cfg['variant']}`): four independent networks for diffuse, specular, roughness (via "
         "glossiness) and normals; inputs are 24 light slots with presence planes and field coordinates, so one "
@@ -245,9 +249,16 @@ def main() -> int:
         f"(λ_r = {cfg['lambda_render']:.4f}), 1 − SSIM for diffuse, cosine for normals.",
         f"- This run: {meta['step']} steps ({int(meta['step']) * cfg['batch']:,} samples) of "
         f"{', '.join(cfg['maps'])} in {hours:.2f} h on 2 CPU cores (no GPU)"
+        + (f", of which this file ships {args.take} (the others: `{fill}`)" if take else "")
         + (
             f", started from `{meta['init']}` ({before}) and drawing the samples after the "
-            f"{meta['init_step']} steps behind it."
+            f"{meta['init_step']} steps behind it"
+            + (
+                f"; how those were trained, on what hardware and with what batch: "
+                f"`{Path(meta['init']).parent}/README.md`."
+                if (Path(meta["init"]).parent / "README.md").is_file()
+                else "."
+            )
             if "init" in meta
             else "."
         ),
@@ -259,13 +270,15 @@ def main() -> int:
         )
     lines += [
         "",
-        "| network | steps in all | samples | training behind it | from |",
-        "|---|---:|---:|---:|---|",
+        "| network | steps in all | training behind it | from |",
+        "|---|---:|---:|---|",
         *(
-            f"| {m} | {r['steps']:,} | {r['steps'] * cfg['batch']:,} | {r['elapsed_seconds'] / 3600:.2f} h | "
-            f"`{r['from']}` |"
+            f"| {m} | {r['steps']:,} | {r['elapsed_seconds'] / 3600:.2f} h | `{r['from']}` |"
             for m, r in networks.items()
         ),
+        "",
+        "Steps of every run behind a network add up whatever their batch (4 in CPU runs, 32 in GPU runs; each "
+        "run's `config.json`).",
         "",
         "The four networks are independent and each has its own loss (one predicted map rendered with the "
         "other three true maps), so one network trained alone gets the same updates as in a run of all four "
@@ -295,7 +308,7 @@ def main() -> int:
                 + " |"
             )
     lines += ["", *reading(table, net["photo_statistic"])]
-    cmd = f"tools/model_card.py {run} {count}" + (f" --fill {args.fill}" if args.fill else "")
+    cmd = f"tools/model_card.py {run} {count}" + options
     lines += ["", f"Scored in {seconds:.0f} s with `.venv/bin/python {cmd}`.", ""]
     lines += kept_unlike(old_card, weights)
     CARD.write_text("\n".join(lines))
