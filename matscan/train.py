@@ -353,9 +353,12 @@ def export_weights(
 
     ``take``: the run's networks to export (default: all it trained); with ``fill_from``
     the others come from there, e.g. a run that improved G_d and G_n but not G_s and G_g.
+
+    ``checkpoint`` may also be a run's exported weights (a float16 copy kept in git where
+    the checkpoint, with Adam's state, is too large to commit).
     """
     meta = _metadata(checkpoint)
-    cfg = TrainConfig.from_dict(json.loads(meta["config"]), str(checkpoint))
+    cfg = _config_of(meta, checkpoint)
     net = net_config_of(meta, cfg)
     own = tuple(cfg.maps) if take is None else tuple(take)
     if not own or not set(own) <= set(cfg.maps):
@@ -363,7 +366,9 @@ def export_weights(
         raise input_error(checkpoint, f"take: {asked} is not among the networks it trained ({trained})")
     if cfg.variant != "four" and set(own) != set(cfg.maps):
         raise input_error(checkpoint, "only the four independent networks (variant four) can be taken apart")
-    stored = {k.removeprefix("model."): v for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")}
+    stored = load_file(str(checkpoint))
+    if any(k.startswith("model.") for k in stored):  # a checkpoint: the networks, not Adam's state
+        stored = {k.removeprefix("model."): v for k, v in stored.items() if k.startswith("model.")}
     tensors = {k: v for k, v in stored.items() if not k.startswith("nets.") or k.split(".")[1] in own}
     networks = {m: {**r, "from": str(checkpoint)} for m, r in training_record(meta).items() if m in own}
     if fill_from is not None:

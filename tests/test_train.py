@@ -214,6 +214,14 @@ def test_export_takes_some_of_a_runs_networks_and_fills_the_others(tmp_path):
     assert alone.maps == ("normal",)
     with pytest.raises(MatscanError, match="take: gloss is not among the networks it trained"):
         export_weights(run, tmp_path / "x.safetensors", take=("gloss",))
+    # a run's exported float16 weights (kept in git instead of its checkpoint) export again
+    half = export_weights(run, tmp_path / "h.safetensors", dtype=torch.float16)
+    again = export_weights(half, tmp_path / "h2.safetensors", fill_from=init, take=("diffuse", "normal"))
+    a, b = load_file(str(half)), load_file(str(again))
+    for k, v in a.items():
+        if k.split(".")[1] in ("diffuse", "normal"):
+            torch.testing.assert_close(b[k].half(), v, rtol=0, atol=0)
+    assert training_record(load_weights(again)[1])["specular"]["from"] == str(init)
 
 
 def test_files_without_a_net_config_load_with_the_median(tmp_path):

@@ -17,7 +17,8 @@ for other weights keeps the section marked stale until the study is re-run).
 
 A run that trained only some of the four networks (``matscan train --maps``) is
 completed with the others of ``--fill`` (default: the weights the run started
-from, its ``init``); the card says, per network, how much training is behind it.
+from, its ``init``); the card says, per network, how much training is behind it. A run
+whose checkpoint is not committed is exported from its ``weights.safetensors``.
 ``--take diffuse,normal`` ships only those networks of the run, the others from ``--fill``.
 """
 
@@ -171,14 +172,16 @@ def main() -> int:
     old_card = CARD.read_text() if CARD.is_file() else ""
     run, count = args.run, args.count
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
-    run_meta = _metadata(run / CHECKPOINT)
+    # the run's checkpoint, or the float16 weights kept in git where the checkpoint is too large to commit
+    source = run / CHECKPOINT if (run / CHECKPOINT).is_file() else run / "weights.safetensors"
+    run_meta = _metadata(source)
     fill = args.fill
     take = args.take.split(",") if args.take else None
-    if fill is None and len(take or json.loads(run_meta["config"])["maps"]) < 4:
+    if fill is None and len(take or json.loads(run_meta.get("config") or run_meta["train_config"])["maps"]) < 4:
         fill = Path(run_meta["init"])
         if not fill.is_file():
             sys.exit(f"{fill}: the weights this run started from are needed for the networks it did not train (--fill)")
-    weights = export_weights(run / CHECKPOINT, ROOT / SHIPPED["default"], {"run": str(run)}, fill_from=fill, take=take)
+    weights = export_weights(source, ROOT / SHIPPED["default"], {"run": str(run)}, fill_from=fill, take=take)
     weights.chmod(0o644)
     nets, meta = load_weights(weights)
     cfg = json.loads(meta.get("train_config") or meta["config"])
