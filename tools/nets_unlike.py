@@ -4,7 +4,8 @@ For each weights file and each dome24 Table 4 count (1, 2, 3, 6, 24): the mean o
 artist-style and 3 texture-photograph map sets (``matscan.materials.artist`` and
 ``photos``, never used in training) at SIZE² of the novel-light RMSE (16 lights the rig
 does not have, ``matscan.evaluate.evaluation_lights``), of the diffuse, specular and
-roughness RMSE and of the mean normal angle (``matscan.evaluate.map_scores``). Captures as ``bench/anyrig.py`` makes them (8-bit sRGB, noise, seed = set index).
+roughness RMSE and of the mean normal angle (``matscan.evaluate.map_scores``). Captures
+as ``bench/anyrig.py`` makes them (8-bit sRGB, noise, seed = set index).
 With ``--per-set COUNT`` it prints each set's numbers at that count instead.
 
 Run: .venv/bin/python tools/nets_unlike.py WEIGHTS [WEIGHTS ...] [--size 128] [--per-set 2]
@@ -59,7 +60,8 @@ def main() -> int:
                     a = render_maps(p, novel_lights, dome.field_mm).clamp(0, 1)
                     b = render_maps(m, novel_lights, dome.field_mm).clamp(0, 1)
                 s = map_scores(p, m)
-                rows.append((rmse(a, b), s["rmse_diffuse"], s["rmse_specular"], s["rmse_roughness"], s["normal_degrees"]))
+                scores = (s["rmse_diffuse"], s["rmse_specular"], s["rmse_roughness"], s["normal_degrees"])
+                rows.append((rmse(a, b), *scores))
                 if args.per_set:
                     print(
                         f"{w.name} {count} {names[i]:22s} novel {rows[-1][0]:.4f} diffuse {rows[-1][1]:.4f} "
