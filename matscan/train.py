@@ -387,8 +387,15 @@ def export_weights(
             k = k.removeprefix("model.")
             if k.startswith("nets.") and k.split(".")[1] in fill_maps:
                 tensors[k] = v
-        # an assembled file keeps its networks' own records
-        records = {m: {"from": str(fill_from), **r} for m, r in training_record(fill_meta).items()}
+        # an assembled file keeps its networks' own records, except where a network's
+        # record names its run's checkpoint and the fill is that run's own copy beside it
+        # (the float16 weights.safetensors kept in git instead of the checkpoint)
+        records = {}
+        for m, r in training_record(fill_meta).items():
+            origin = r.get("from", str(fill_from))
+            if Path(origin).parent == Path(fill_from).parent:
+                origin = str(fill_from)
+            records[m] = {**r, "from": origin}
         networks.update({m: records[m] for m in fill_maps})
     maps = [m for m in MAPS if m in networks]
     info = {

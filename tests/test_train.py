@@ -222,6 +222,12 @@ def test_export_takes_some_of_a_runs_networks_and_fills_the_others(tmp_path):
         if k.split(".")[1] in ("diffuse", "normal"):
             torch.testing.assert_close(b[k].half(), v, rtol=0, atol=0)
     assert training_record(load_weights(again)[1])["specular"]["from"] == str(init)
+    # filled from a run's float16 copy, its networks name that copy, not the checkpoint beside it
+    beside = tmp_path / "b" / "weights.safetensors"
+    export_weights(init, beside, dtype=torch.float16)
+    filled = export_weights(run, tmp_path / "f.safetensors", fill_from=beside, take=("diffuse", "normal"))
+    record = training_record(load_weights(filled)[1])
+    assert record["specular"]["from"] == str(beside) and record["diffuse"]["from"] == str(run)
 
 
 def test_files_without_a_net_config_load_with_the_median(tmp_path):

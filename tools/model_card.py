@@ -102,15 +102,20 @@ def replace_unlike(card: str, section: list[str]) -> str:
     return head.rstrip("\n") + "\n\n" + "\n".join(section) if found else card.rstrip("\n") + "\n\n" + "\n".join(section)
 
 
+STALE = "**Stale: made with earlier weights; re-run the study and `--unlike`.**"
+
+
 def kept_unlike(card: str, weights: Path) -> list[str]:
     """The old card's unlike section, marked stale when it was made with other weights."""
     _, found, tail = card.partition(UNLIKE)
     if not found:
         return []
     section = (UNLIKE + tail).rstrip("\n").split("\n")
+    if section[2] == STALE:  # marked by an earlier rewrite: mark it once
+        del section[2:4]
     if sha256(weights)[:16] not in section[2]:
-        section[2:2] = ["**Stale: made with earlier weights; re-run the study and `--unlike`.**", ""]
-    return ["", *section, ""]
+        section[2:2] = [STALE, ""]
+    return [*section, ""]
 
 
 def reading(table: dict, statistic: str) -> list[str]:
