@@ -656,9 +656,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--refine",
         default="auto",
         choices=["auto", "on", "off"],
-        help="refine by inverse rendering (auto: with the lm solver from 2 photos, choosing between networks, "
-        "networks + solver and solver alone by photos left out with 2 to 9 photos; with adam from 10; always "
-        "without networks; docs/results.md)",
+        help="refine by inverse rendering (auto, lm solver with the networks: 1 photo, the networks alone; "
+        "2 or 3, networks + solver or solver alone, whichever predicts photos left out better; from 4, "
+        "always; adam: from 10; always without networks; docs/results.md)",
     )
     p.add_argument(
         "--solver",
@@ -789,7 +789,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--prior",
         default=None,
-        help="material prior: v1 (what the shipped weights saw), v2 (adds relief, varying specular, dark glossy)",
+        help="material prior: v1 (the default), v2 (adds relief, varying specular, dark glossy), "
+        "v3 (adds dark glossy in deep relief)",
     )
     p.add_argument("--device", default=None, help="auto (default: cuda when there is one), cpu, cuda, cuda:N")
     p.add_argument("--prefetch", type=positive_int, default=None, help="batches each data worker prepares ahead")

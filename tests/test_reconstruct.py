@@ -251,7 +251,7 @@ def test_auto_refines_from_the_solvers_photo_count_and_always_without_networks(t
     six, _ = _capture(tmp_path / "a", size=16, lights=[0, 4, 8, 12, 16, 20])
     ten, _ = _capture(tmp_path / "b", size=16, lights=[4, 6, 8, 10, 12, 14, 16, 18, 20, 22])
     lm, adam = ReconstructConfig(), ReconstructConfig(solver="adam", refine_steps=2)
-    assert "refine_s" in reconstruct_capture(one, lm, nets).timings  # lm: one photo, the solver alone
+    assert "refine_s" not in reconstruct_capture(one, lm, nets).timings  # lm: one photo, the networks alone
     assert "refine_s" in reconstruct_capture(two, lm, nets).timings  # 2-3: by evidence, both candidates refine
     assert "refine_s" in reconstruct_capture(six, lm, nets).timings
     assert "refine_s" not in reconstruct_capture(six, adam, nets).timings  # adam: from 10
@@ -282,13 +282,14 @@ def test_auto_chooses_by_held_out_photos_with_2_or_3_photos(tmp_path):
     two, _ = _capture(tmp_path / "two", size=24, lights=[0, 16])
     pair = choose_by_evidence(two, ReconstructConfig(), nets)[1]
     assert pair["folds"] == 2 and pair["left_out"] == list(two.files)
-    # one photo: the rule (the solver alone); from 4 photos the networks + solver, no comparison;
+    # one photo: the rule (the networks alone); from 4 photos the networks + solver, no comparison;
     # adam keeps its rule
     one, _ = _capture(tmp_path / "one", size=24, lights=[0])
     four, _ = _capture(tmp_path / "four", size=24, lights=[0, 6, 12, 18])
     single = reconstruct_capture(one, ReconstructConfig(), nets)
-    assert single.choice["chosen"] == "solver" and single.refined
-    torch.testing.assert_close(single.maps.diffuse, reconstruct_capture(one, ReconstructConfig(), None).maps.diffuse)
+    assert single.choice["chosen"] == "networks" and not single.refined and single.start == "networks"
+    unrefined = reconstruct_capture(one, ReconstructConfig(refine="off"), nets)
+    torch.testing.assert_close(single.maps.diffuse, unrefined.maps.diffuse)
     assert reconstruct_capture(four, ReconstructConfig(), nets).choice is None
     assert reconstruct_capture(three, ReconstructConfig(solver="adam", refine_steps=2), nets).choice is None
     assert choose_by_evidence(four, ReconstructConfig(), nets)[1]["left_out"] == [four.files[2]]
