@@ -177,7 +177,7 @@ def test_prior_v2_adds_the_new_families_at_their_share():
     drawn = [random_material(8, s, prior="v2")[0] for s in range(400)]
     assert abs(sum(f in new for f in drawn) / 400 - share) < 0.08
     assert set(drawn) >= set(new)
-    with pytest.raises(MatscanError, match="prior: 'v9' is not one of v1, v2"):
+    with pytest.raises(MatscanError, match="prior: 'v9' is not one of v1, v2, v3"):
         random_material(8, 0, prior="v9")
 
 
@@ -236,6 +236,32 @@ def test_varnished_wood_is_a_dielectric_under_a_clear_coat():
         assert float(m.roughness.flatten().quantile(0.25)) <= 0.42  # the varnish is glossy away from pores
         assert _spread(m.roughness) > 0.02  # pores and brush marks vary it
         assert float(m.diffuse[0].mean()) > float(m.diffuse[2].mean())  # wood is warm
+
+
+def test_prior_v3_adds_deep_dark_relief_and_keeps_v2s_draws():
+    assert [f for f in PRIORS["v3"] if f not in PRIORS["v2"]] == ["dark_relief"]
+    assert {f: PRIORS["v3"][f] for f in PRIORS["v2"]} == PRIORS["v2"]
+    drawn = [random_material(8, s, prior="v3")[0] for s in range(300)]
+    share = PRIORS["v3"]["dark_relief"] / sum(PRIORS["v3"].values())
+    assert abs(drawn.count("dark_relief") / 300 - share) < 0.05
+    # v2's draws are its own: the family each seed draws depends on v2's table alone
+    for s in range(40):
+        fam, maps = random_material(16, s, prior="v2")
+        assert fam != "dark_relief"
+        assert torch.equal(maps.diffuse, random_material(16, s, prior="v2")[1].diffuse)
+
+
+def test_dark_relief_is_dark_glossy_and_tilted_18_to_40_degrees_at_every_training_scale():
+    for i in range(12):
+        m = generate("dark_relief", 128, i, _training_scale(i))
+        assert float(m.diffuse.max()) <= DARK_ALBEDO_MAX
+        assert 0.04 <= float(m.specular.min()) and float(m.specular.max()) <= 0.05
+        assert 0.15 <= float(m.roughness.min()) and float(m.roughness.max()) <= 0.6
+        # the height is scaled so that the median tilt is the drawn one, 18°–40°
+        assert 18 - 0.5 <= float(_tilt_degrees(m).median()) <= 40 + 0.5, i
+    # deeper than dark_glossy's shallow leather and lacquer at the same scales
+    shallow = [float(_tilt_degrees(generate("dark_glossy", 128, i, _training_scale(i))).median()) for i in range(12)]
+    assert float(torch.tensor(shallow).median()) < 15
 
 
 def test_dark_glossy_is_dark_and_glossy():

@@ -1,12 +1,15 @@
-"""Contact sheet of the families prior v2 adds: docs/procedural-materials-v2.png.
+"""Contact sheet of the families a material prior adds to the one before it:
+docs/procedural-materials-v2.png (v2 over v1), docs/procedural-materials-v3.png (v3 over v2).
 
-One row per family (``NEW_FAMILIES``), three materials a row (seeds 0, 1, 2 at 256²
-over the dome24 field, as ``matscan synth`` draws them), five tiles a material: the
+One row per family (:func:`new_families`; two rows when there is one), three materials a
+row (seeds 0, 1, 2, … at 256² over the dome24 field, as ``matscan synth`` draws them),
+five tiles a material: the
 material under dome24 light 18 (ring 2, 67.5° elevation, the light ``synth``'s sheet
 shows), under light 4 (ring 0, 22.5°: grazing, so relief casts its shading), the
 normal map ((n + 1)/2), F0 (sRGB-encoded) and roughness (grey, black = 0).
 
-Deterministic: the same PNG on every run. Run: .venv/bin/python tools/procedural_sheet_v2.py [OUT]
+Deterministic: the same PNG on every run.
+Run: .venv/bin/python tools/procedural_sheet.py PRIOR [OUT]   (PRIOR v2 or v3; OUT default as above)
 """
 
 from __future__ import annotations
@@ -19,19 +22,28 @@ from matscan.render import render, surface_points
 from matscan.report.sheet import contact_sheet, save_sheet, to_display
 from matscan.rig import builtin_rig
 
-#: The families v2 has and v1 has not, in the order of their weights table.
-NEW_FAMILIES = [f for f in PRIORS["v2"] if f not in PRIORS["v1"]]
+
+def new_families(prior: str) -> list[str]:
+    """The families ``prior`` has and the version before it has not, in the order of its
+    weights table."""
+    versions = list(PRIORS)
+    before = PRIORS[versions[versions.index(prior) - 1]]
+    return [f for f in PRIORS[prior] if f not in before]
+
+
 SEEDS = (0, 1, 2)
 SIZE = 256
 LIGHTS = {"light 18": 18, "grazing 4": 4}
 
 
-def main(out: Path) -> Path:
+def main(prior: str, out: Path) -> Path:
     rig = builtin_rig("dome24")
     points = surface_points(rig.field_mm, (SIZE, SIZE))
     tiles = []
-    for family in NEW_FAMILIES:
-        for seed in SEEDS:
+    families = new_families(prior)
+    seeds = range(max(len(SEEDS), 6 // len(families)))  # six materials at least, in rows of three
+    for family in families:
+        for seed in seeds:
             maps = generate(family, SIZE, seed)
             photos = render(
                 maps.diffuse,
@@ -52,5 +64,8 @@ def main(out: Path) -> Path:
 
 
 if __name__ == "__main__":
-    path = main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path("docs/procedural-materials-v2.png"))
+    prior = sys.argv[1] if len(sys.argv) > 1 else "v2"
+    if prior not in list(PRIORS)[1:]:
+        sys.exit(f"prior: {prior!r} is not one of {', '.join(list(PRIORS)[1:])}")
+    path = main(prior, Path(sys.argv[2]) if len(sys.argv) > 2 else Path(f"docs/procedural-materials-{prior}.png"))
     print(f"wrote {path}")

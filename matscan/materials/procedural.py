@@ -13,7 +13,8 @@ Families (``FAMILIES``): woven_plain, woven_twill, woven_satin, knit, leather,
 paper, painted, plastic, metal_brushed, metal_embossed, foil_print, mesh, lace,
 fluorescent_print; and, since prior v2, leather_embossed, weave_heavy, corrugated
 (strong relief), metallic_print, worn, varnished_wood (specular and roughness that
-vary over the surface) and dark_glossy.
+vary over the surface) and dark_glossy; since prior v3, dark_relief (dark and glossy in
+deep relief).
 
 Priors (``PRIORS``): :func:`random_material` draws a family by the weights of a
 prior version. "v1" (the default) holds the first fourteen families and draws, for
@@ -21,7 +22,8 @@ every seed, the material it always drew: published numbers (``procedural:N`` in
 evaluate, the model card's validation set) are reproduced from those seeds. "v2"
 adds the seven later families at 41% of the draws: v1's materials are mostly flat
 (a median tilt under 10° in 55% of its draws at training scales, under 15° in 69%)
-and most hold one specular value.
+and most hold one specular value. "v3" adds dark_relief at 2 in 29 (7%): v2's dark
+glossy surfaces all lie nearly flat.
 """
 
 from __future__ import annotations
@@ -759,6 +761,59 @@ def dark_glossy(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
 DARK_ALBEDO_MAX = 0.05
 
 
+# --- prior v3: dark, glossy and deep ----------------------------------------------------
+
+
+def _to_median_tilt(shape: Tensor, degrees: float, mm_per_px: float) -> Tensor:
+    """``shape`` (any units) scaled into a height field (mm) whose normals' median tilt
+    is ``degrees``: the tilt is atan of the slope :func:`normals_from_height` takes
+    (central differences), so scaling the height scales every slope by the same factor."""
+    dx = (torch.roll(shape, -1, -1) - torch.roll(shape, 1, -1)) / 2
+    dy = (torch.roll(shape, -1, -2) - torch.roll(shape, 1, -2)) / 2
+    slope = (dx * dx + dy * dy).sqrt().median().clamp_min(1e-9)
+    return shape * (math.tan(math.radians(degrees)) / slope * mm_per_px)
+
+
+def dark_relief(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
+    """Dark glossy surfaces in deep relief, where the highlight breaks up over the slopes:
+    deep-grained and pebbled black leather, textured black rubber, embossed dark plastic.
+    :func:`dark_glossy` holds the shallow ones (walls of 10°–25°); here a grazing light
+    lights only some slopes and every light finds a highlight somewhere, so a glossy
+    surface can look rough to an eye that counts highlights.
+
+    Ranges: diffuse albedo (linear, every channel) at most 0.05 (0.005–0.05, 10% lower in
+    the hollows); F0 0.04–0.05; roughness 0.15–0.45 on the tops, 0–0.15 rougher in the
+    hollows (polished tops, dust and wear below). Relief: cells (domed pebbles or a
+    creased grain, 60–900 per tile) or band-limited noise (feature 0.01–0.04 of the
+    tile, two octaves), scaled so that the normals' median tilt is 18°–40° at any scale.
+    """
+    kind = _choice(g, ["pebbled", "creased", "noise"])
+    if kind == "noise":
+        shape = fractal_noise(size, g, _u(g, 0.01, 0.04), octaves=2)
+        shape = (shape - shape.min()) / (shape.max() - shape.min()).clamp_min(1e-9)
+    else:
+        count = _i(g, 60, 900)
+        f1, f2, _ = cells(size, g, count)
+        # walls are likelier near the jittered grid's lines, which meet the tile's edges:
+        # a random shift (tiling is kept) puts the edges anywhere in a cell
+        shift = (_i(g, 0, size - 1), _i(g, 0, size - 1))
+        f1, f2 = torch.roll(f1, shift, (0, 1)), torch.roll(f2, shift, (0, 1))
+        pitch = size / math.sqrt(count)
+        if kind == "pebbled":  # rounded domes between narrow grooves
+            shape = torch.sin(math.pi / 2 * ((f2 - f1) / (_u(g, 0.3, 0.5) * pitch)).clamp(max=1))
+        else:  # sharp creases between flat-topped cells
+            shape = 1 - torch.exp(-(f2 - f1) / (_u(g, 0.05, 0.15) * pitch))
+        shape = shape + 0.05 * spectral_noise(size, g, _u(g, 0.004, 0.01))
+    height = _to_median_tilt(shape, _u(g, 18, 40), mm_per_px)
+    top = (shape - shape.min()) / (shape.max() - shape.min()).clamp_min(1e-9)  # 1 on the tops
+    tint = random_colour(g, (0.0, 0.6), (1.0, 1.0))
+    tint = tint / tint.max()
+    albedo = _u(g, 0.005, 0.05) * (0.9 + 0.1 * top)
+    diffuse = (tint * albedo).clamp(max=DARK_ALBEDO_MAX)
+    rough = _u(g, 0.15, 0.45) + _u(g, 0.0, 0.15) * (1 - top)
+    return _finish(size, diffuse, _dielectric_f0(g, 0.04, 0.05), rough, height, mm_per_px)
+
+
 Generator = Callable[[int, torch.Generator, float], MapSet]
 
 GENERATORS: dict[str, Generator] = {
@@ -783,6 +838,7 @@ GENERATORS: dict[str, Generator] = {
     "worn": worn,
     "varnished_wood": varnished_wood,
     "dark_glossy": dark_glossy,
+    "dark_relief": dark_relief,
 }
 FAMILIES = tuple(GENERATORS)
 
@@ -820,9 +876,14 @@ WEIGHTS_V2: dict[str, float] = {
     "dark_glossy": 2.0,
 }
 
+#: Prior v3: v2, and dark glossy surfaces in deep relief (:func:`dark_relief`) drawn as
+#: often as the shallow ones: the networks trained on v2 read a deep-grained black leather
+#: (artist-black-leather, docs/results.md) rougher the more lights they see.
+WEIGHTS_V3: dict[str, float] = {**WEIGHTS_V2, "dark_relief": 2.0}
+
 #: The material priors :func:`random_material` draws from, by version: family → weight.
 #: A version, once published, never changes (its seeds must keep drawing the same materials).
-PRIORS: dict[str, dict[str, float]] = {"v1": WEIGHTS, "v2": WEIGHTS_V2}
+PRIORS: dict[str, dict[str, float]] = {"v1": WEIGHTS, "v2": WEIGHTS_V2, "v3": WEIGHTS_V3}
 
 
 def check_prior(prior: str) -> str:
