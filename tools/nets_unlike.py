@@ -1,6 +1,6 @@
 """The networks alone on the 8 map sets unlike the training set, fast (seconds, not the study's half hour).
 
-For each weights file and each dome24 Table 4 count (1, 2, 3, 6, 24): the mean over the 5
+For each weights file and each dome24 Table 4 count (``--counts``; 1, 2, 3, 6, 24): the mean over the 5
 artist-style and 3 texture-photograph map sets (``matscan.materials.artist`` and
 ``photos``, never used in training) at SIZE² of the novel-light RMSE (16 lights the rig
 does not have, ``matscan.evaluate.evaluation_lights``), of the diffuse, specular and
@@ -9,6 +9,7 @@ as ``bench/anyrig.py`` makes them (8-bit sRGB, noise, seed = set index).
 With ``--per-set COUNT`` it prints each set's numbers at that count instead.
 
 Run: .venv/bin/python tools/nets_unlike.py WEIGHTS [WEIGHTS ...] [--size 128] [--per-set 2]
+[--counts 1,2,3,6,10,16,24]
 Weights that hold only some networks are scored with the shipped ones for the others
 (``export_weights(..., fill_from=...)`` first).
 """
@@ -43,13 +44,14 @@ def main() -> int:
     parser.add_argument("weights", nargs="+", type=Path)
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--per-set", metavar="COUNT", help="each map set's numbers at this light count")
+    parser.add_argument("--counts", default="1,2,3,6,24", help="light counts (Table 4 subsets; default 1,2,3,6,24)")
     args = parser.parse_args()
     torch.set_num_threads(2)
     names = [f"artist-{n}" for n in ARTIST_NAMES] + [f"photo-{n}" for n in TINTS]
     mats = [artist_material(n, args.size) for n in ARTIST_NAMES] + [photo_material(n, args.size) for n in TINTS]
     dome = builtin_rig("dome24")
     novel_lights = evaluation_lights(dome)
-    counts = [args.per_set] if args.per_set else ["1", "2", "3", "6", "24"]
+    counts = [args.per_set] if args.per_set else args.counts.split(",")
     for w in args.weights:
         nets, _ = load_weights(w)
         for count in counts:
