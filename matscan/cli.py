@@ -121,6 +121,15 @@ def cmd_simulate(args: argparse.Namespace) -> str:
     )
 
 
+def _choice_note(choice: dict | None) -> str:
+    """What ``--refine auto`` chose and why, for the summary line ("" when it chose nothing)."""
+    if not choice:
+        return ""
+    if "left_out" in choice:
+        return f" ({choice['chosen']}: the best at predicting {len(choice['left_out'])} photo(s) left out)"
+    return f" ({choice['chosen']}: the rule for {choice['rule']})"
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> str:
     from matscan.reconstruct import ReconstructConfig, reconstruct
 
@@ -151,11 +160,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
     return (
         f"reconstruct: wrote maps of {w}×{h} px ({rec['mm_per_pixel'][0]:.3f} mm/px) from {len(rec['inputs'])} photos "
         f"to {args.out}; model {rec['model']['name']}, refined {'yes' if rec['refined'] else 'no'}"
-        + (
-            f" ({rec['choice']['chosen']}: the best at predicting {len(rec['choice']['left_out'])} photo(s) left out)"
-            if rec.get("choice")
-            else ""
-        )
+        + _choice_note(rec.get("choice"))
         + "; "
         f"re-render RMSE {rec['rerender_rmse']:.4f}"
         + (_validation_summary(rec["validation"]) if "validation" in rec else "")

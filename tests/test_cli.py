@@ -26,6 +26,17 @@ def test_simulate_render_sheet(tmp_path, capsys):
     assert read_image(tmp_path / "s.png").pixels.shape[2] == 3
 
 
+@pytest.mark.parametrize(("lights", "said"), [("1", "networks: the rule for one photo"), ("2", "left out")])
+def test_reconstruct_says_what_refine_auto_chose(tmp_path, capsys, lights, said):
+    # with one photo the choice is a rule, with two it is measured on photos left out
+    assert main(["simulate", "@sample", "--out", str(tmp_path / "c"), "--lights", lights, "--size", "32"]) == 0
+    capsys.readouterr()
+    assert main(["reconstruct", str(tmp_path / "c"), "--out", str(tmp_path / "m")]) == 0
+    out = capsys.readouterr().out
+    assert "reconstruct: wrote maps" in out and said in out
+    assert "refined no" in out if lights == "1" else "refined yes" in out
+
+
 def test_simulate_exact_mode(tmp_path):
     assert (
         main(
