@@ -795,7 +795,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--prior",
         default=None,
         help="material prior: v1 (the default), v2 (adds relief, varying specular, dark glossy), "
-        "v3 (adds dark glossy in deep relief)",
+        "v3 (adds dark glossy in deep relief), v4 (v3 with dark glossy drawn twice as often)",
     )
     p.add_argument("--device", default=None, help="auto (default: cuda when there is one), cpu, cuda, cuda:N")
     p.add_argument("--prefetch", type=positive_int, default=None, help="batches each data worker prepares ahead")

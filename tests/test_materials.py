@@ -251,6 +251,20 @@ def test_prior_v3_adds_deep_dark_relief_and_keeps_v2s_draws():
         assert torch.equal(maps.diffuse, random_material(16, s, prior="v2")[1].diffuse)
 
 
+def test_prior_v4_draws_v3s_families_the_dark_glossy_ones_at_10_in_35():
+    assert set(PRIORS["v4"]) == set(PRIORS["v3"])
+    dark = ("dark_glossy", "dark_relief")
+    assert {f: PRIORS["v4"][f] for f in PRIORS["v3"] if f not in dark} == {
+        f: PRIORS["v3"][f] for f in PRIORS["v3"] if f not in dark
+    }
+    assert sum(PRIORS["v4"][f] for f in dark) / sum(PRIORS["v4"].values()) == pytest.approx(10 / 35)
+    drawn = [random_material(8, s, prior="v4")[0] for s in range(400)]
+    share = sum(drawn.count(f) for f in dark) / 400
+    assert abs(share - 10 / 35) < 0.06  # binomial: 1 sd is 0.023
+    # v3's table is untouched, so its seeds draw what they drew
+    assert (PRIORS["v3"]["dark_glossy"], PRIORS["v3"]["dark_relief"]) == (2.0, 2.0)
+
+
 def test_dark_relief_is_dark_glossy_and_tilted_18_to_40_degrees_at_every_training_scale():
     for i in range(12):
         m = generate("dark_relief", 128, i, _training_scale(i))
