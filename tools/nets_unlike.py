@@ -6,10 +6,13 @@ artist-style and 3 texture-photograph map sets (``matscan.materials.artist`` and
 does not have, ``matscan.evaluate.evaluation_lights``), of the diffuse, specular and
 roughness RMSE and of the mean normal angle (``matscan.evaluate.map_scores``). Captures
 as ``bench/anyrig.py`` makes them (8-bit sRGB, noise, seed = set index).
-With ``--per-set COUNT`` it prints each set's numbers at that count instead.
+With ``--per-set COUNT`` it prints each set's numbers at that count instead; with
+``--levers`` as well, each set's novel-light RMSE when one predicted map (or specular and
+roughness together) is replaced by the true one: which map's error costs the relighting
+most, and where a nearer map relights worse with the other predicted maps beside it.
 
 Run: .venv/bin/python tools/nets_unlike.py WEIGHTS [WEIGHTS ...] [--size 128] [--per-set 2]
-[--counts 1,2,3,6,10,16,24]
+[--counts 1,2,3,6,10,16,24] [--levers]
 Weights that hold only some networks are scored with the shipped ones for the others
 (``export_weights(..., fill_from=...)`` first).
 """
@@ -27,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
 from anyrig import capture_of  # noqa: E402
 
 from matscan.evaluate import evaluation_lights, map_scores  # noqa: E402
+from matscan.mapset import MapSet  # noqa: E402
 from matscan.materials.artist import ARTIST_NAMES, artist_material  # noqa: E402
 from matscan.materials.photos import TINTS, photo_material  # noqa: E402
 from matscan.reconstruct.networks import predict_maps  # noqa: E402
@@ -39,13 +43,25 @@ def rmse(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).square().mean().sqrt())
 
 
+#: What ``--levers`` swaps in from the truth.
+LEVERS = (("diffuse",), ("specular",), ("roughness",), ("normal",), ("specular", "roughness"))
+
+
+def novel_rmse(p: MapSet, m: MapSet, lights, field_mm) -> float:
+    with torch.no_grad():
+        return rmse(render_maps(p, lights, field_mm).clamp(0, 1), render_maps(m, lights, field_mm).clamp(0, 1))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("weights", nargs="+", type=Path)
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--per-set", metavar="COUNT", help="each map set's numbers at this light count")
+    parser.add_argument("--levers", action="store_true", help="with --per-set: novel RMSE with each map made true")
     parser.add_argument("--counts", default="1,2,3,6,24", help="light counts (Table 4 subsets; default 1,2,3,6,24)")
     args = parser.parse_args()
+    if args.levers and not args.per_set:
+        parser.error("--levers needs --per-set COUNT")
     torch.set_num_threads(2)
     names = [f"artist-{n}" for n in ARTIST_NAMES] + [f"photo-{n}" for n in TINTS]
     mats = [artist_material(n, args.size) for n in ARTIST_NAMES] + [photo_material(n, args.size) for n in TINTS]
@@ -58,12 +74,9 @@ def main() -> int:
             rows = []
             for i, m in enumerate(mats):
                 p = predict_maps(nets, capture_of(m, dome, dome.subset(count), seed=i))
-                with torch.no_grad():
-                    a = render_maps(p, novel_lights, dome.field_mm).clamp(0, 1)
-                    b = render_maps(m, novel_lights, dome.field_mm).clamp(0, 1)
                 s = map_scores(p, m)
                 scores = (s["rmse_diffuse"], s["rmse_specular"], s["rmse_roughness"], s["normal_degrees"])
-                rows.append((rmse(a, b), *scores))
+                rows.append((novel_rmse(p, m, novel_lights, dome.field_mm), *scores))
                 if args.per_set:
                     print(
                         f"{w.name} {count} {names[i]:22s} novel {rows[-1][0]:.4f} diffuse {rows[-1][1]:.4f} "
@@ -71,6 +84,12 @@ def main() -> int:
                         f"true {float(m.specular.mean()):.3f}) roughness {rows[-1][3]:.4f} normal {rows[-1][4]:.2f}°",
                         flush=True,
                     )
+                if args.levers:
+                    swapped = []
+                    for lever in LEVERS:
+                        q = MapSet(**{**p.present(), **{k: getattr(m, k) for k in lever}})
+                        swapped.append(f"{'+'.join(lever)} {novel_rmse(q, m, novel_lights, dome.field_mm):.4f}")
+                    print(f"    novel with the true map: {', '.join(swapped)}", flush=True)
             if not args.per_set:
                 mean = [sum(r[k] for r in rows) / len(rows) for k in range(5)]
                 print(
