@@ -579,6 +579,7 @@ def cmd_train(args: argparse.Namespace) -> str:
         "lr",
         "steps",
         "render_lights",
+        "render_with",
         "workers",
         "seed",
         "val_every",
@@ -780,6 +781,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=positive_float, default=None)
     p.add_argument("--steps", type=positive_int, default=None, help="total steps of the run")
     p.add_argument("--render-lights", dest="render_lights", type=positive_int, default=None)
+    p.add_argument(
+        "--render-with",
+        dest="render_with",
+        choices=("own", "joint"),
+        default=None,
+        help="rendering loss: own (each network's, the other maps true; the paper's, the default) "
+        "or joint (all trained maps' predictions rendered together)",
+    )
     p.add_argument("--workers", type=non_negative_int, default=None, help="data worker processes")
     p.add_argument("--seed", type=non_negative_int, default=None)
     p.add_argument("--val-every", dest="val_every", type=non_negative_int, default=None)

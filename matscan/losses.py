@@ -11,6 +11,16 @@ novel light k (random position over the sample), and ε = 0.01: renderings are
 compared in log space so highlights do not drown the rest (as in Deschaintre et
 al. 2018). The paper sums 24 renderings; ``render_lights`` sets how many.
 
+The paper's form trains each network against renderings whose other maps are
+*true*, so no network learns what the others' errors do to the relighting (a
+roughness read against true normals relights worse with predicted ones). Training
+with ``render_with="joint"`` replaces the per-network rendering terms with one,
+
+    L_joint = λ_r · Σ_k L1(log(ε + R_k(x̂₁, …, x̂ₘ, rest)), log(ε + R_k(truth)))
+
+with every trained map predicted together (the maps not trained from the truth),
+added once to the sum of the networks' other terms.
+
 SSIM: Wang et al. 2004, 11 × 11 Gaussian window (σ = 1.5), C1 = 0.01², C2 = 0.03²,
 on values in [0, 1], averaged over channels and pixels ('valid' window positions).
 """
@@ -82,12 +92,18 @@ def novel_lights(
 
 
 def rendering_loss(
-    pred: dict[str, Tensor], truth: dict[str, Tensor], name: str, lights: LightSet, points: Tensor
+    pred: dict[str, Tensor],
+    truth: dict[str, Tensor],
+    name: str | tuple[str, ...],
+    lights: LightSet,
+    points: Tensor,
 ) -> Tensor:
-    """Σ_k L1 in log space between renderings with the predicted ``name`` map (the
-    rest from ``truth``) and the ground truth, under ``lights``."""
+    """Σ_k L1 in log space between renderings with the predicted ``name`` map (or
+    maps, for the joint loss; the rest from ``truth``) and the ground truth, under
+    ``lights``."""
     maps = dict(truth)
-    maps[name] = pred[name]
+    for n in (name,) if isinstance(name, str) else name:
+        maps[n] = pred[n]
     a = render(maps["diffuse"], maps["specular"], maps["roughness"], maps["normal"], lights, points)
     with torch.no_grad():
         b = render(truth["diffuse"], truth["specular"], truth["roughness"], truth["normal"], lights, points)

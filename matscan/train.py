@@ -29,6 +29,11 @@ The materials come from the procedural prior named by ``prior`` ("v1", the defau
 draws what every earlier run drew; see :data:`matscan.materials.procedural.PRIORS`).
 Validation always uses the v1 set, so runs on either prior compare on one scale.
 
+Rendering loss: ``render_with`` "own" (the paper's) gives each network its own
+rendering term, the other maps from the truth; "joint" renders every trained map's
+prediction together (the untrained maps from the truth) and adds that term once
+(:mod:`matscan.losses`), so the networks learn to relight well together.
+
 Device: ``device`` "auto" trains on CUDA where there is one, else on the CPU. The
 networks, the batch and the losses live there; the data workers render on the CPU
 (``workers`` processes, each ``prefetch`` batches ahead, into pinned memory on CUDA);
@@ -71,7 +76,7 @@ from matscan.jsonfile import (
     loads_text,
     short_repr,
 )
-from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights
+from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights, rendering_loss
 from matscan.nets import MAPS, PRESETS, VARIANTS, MapNets, NetConfig, lights_to, network_input, preset
 from matscan.render import surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
@@ -113,6 +118,7 @@ class TrainConfig:
     library: tuple[str, ...] = ()  # map set folders drawn instead of the prior (tools/photo_library.py)
     library_prob: float = 0.5  # the share of samples drawn from them, when given
     library_metal_prob: float = 0.0  # the share of those given metal patches (matscan.data.metallize)
+    render_with: str = "own"  # "own": each network's rendering term, the rest true; "joint": one for all
 
     @staticmethod
     def from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
@@ -170,6 +176,9 @@ def data_config(cfg: TrainConfig) -> DataConfig:
         library_metal_prob=cfg.library_metal_prob,
     )
 
+
+#: The forms of the rendering loss (TrainConfig.render_with).
+RENDER_WITH = ("own", "joint")
 
 #: TrainConfig fields that say where a run executes, not what it computes: a resume may change them.
 RUNTIME_FIELDS = ("device", "workers", "prefetch")
@@ -491,6 +500,8 @@ def train(
     if cfg.workers < 0 or (cfg.workers > 0 and cfg.prefetch < 1):
         raise MatscanError(f"workers {cfg.workers}, prefetch {cfg.prefetch}: need workers ≥ 0 and prefetch ≥ 1")
     data_cfg = data_config(cfg)
+    if cfg.render_with not in RENDER_WITH:
+        raise MatscanError(f"render_with: {cfg.render_with!r} is not one of {', '.join(RENDER_WITH)}")
     if world > 1 and not torch.distributed.is_initialized():
         torch.distributed.init_process_group("nccl" if device.type == "cuda" else "gloo")
     torch.manual_seed(cfg.seed)
@@ -609,11 +620,17 @@ def train(
                 ).to(device)
             total = 0.0
             terms: dict[str, float] = {}
+            joint = cfg.render_with == "joint"
             for m in cfg.maps:
-                loss, parts = map_loss(m, out, truth, lights, points, cfg.lambda_map, cfg.lambda_render)
+                own = None if joint else lights  # joint: no per-network rendering term
+                loss, parts = map_loss(m, out, truth, own, points, cfg.lambda_map, cfg.lambda_render)
                 total = total + loss
                 terms[f"{m}"] = float(loss.detach())
                 terms.update({f"{m}_{k}": v for k, v in parts.items()})
+            if joint and lights is not None:
+                r = rendering_loss(out, truth, tuple(cfg.maps), lights, points)
+                total = total + cfg.lambda_render * r
+                terms["joint_render"] = float(r.detach())
             opt.zero_grad(set_to_none=True)
             total.backward()
             for params in _groups(nets).values():

@@ -65,6 +65,20 @@ def test_rendering_loss_by_hand():
     assert set(terms) == {"l1", "render", "ssim"}
 
 
+def test_joint_rendering_loss_by_hand():
+    # ρ̂ = 0.5 and a normal tilted 60° under a head-on light: each alone renders 0.5,
+    # together 0.5 · cos 60° = 0.25 (the truth renders 1)
+    truth, pred = _flat(1), _flat(1, 0.5)
+    pred["normal"] = torch.tensor([math.sin(math.pi / 3), 0.0, 0.5]).view(1, 3, 1, 1)
+    lights = LightSet.points(torch.tensor([[[0.0, 0.0, 225.0]]]), torch.tensor([0.0, 0.0, 225.0]), 225.0)
+    points = torch.zeros(1, 1, 1, 3)
+    alone = math.log(1.01 / 0.51)
+    for name in ("diffuse", "normal", ("normal",)):
+        assert float(rendering_loss(pred, truth, name, lights, points)) == pytest.approx(alone, rel=1e-5)
+    joint = rendering_loss(pred, truth, ("diffuse", "normal"), lights, points)
+    assert float(joint) == pytest.approx(math.log(1.01 / 0.26), rel=1e-5)
+
+
 def test_novel_lights_lie_above_the_sample():
     ls = novel_lights(3, 50, 225.0, (0.0, 0.0, 225.0), torch.Generator().manual_seed(0))
     assert ls.position.shape == (3, 50, 3)

@@ -63,6 +63,29 @@ def test_a_resume_with_another_config_is_refused(tmp_path):
         train(other, tmp_path / "a", progress=False)
 
 
+def test_a_joint_rendering_loss_of_one_network_is_its_own(tmp_path):
+    # with one network trained, the joint rendering term is that network's own: same weights
+    one = {**CFG.__dict__, "maps": ("roughness",), "val_every": 0, "steps": 3}
+    train(TrainConfig(**one), tmp_path / "own", progress=False)
+    train(TrainConfig(**{**one, "render_with": "joint"}), tmp_path / "joint", progress=False)
+    for pa, pb in zip(_params(tmp_path / "own" / CHECKPOINT), _params(tmp_path / "joint" / CHECKPOINT), strict=True):
+        torch.testing.assert_close(pa, pb, rtol=1e-5, atol=1e-7)
+    own = next(csv.DictReader((tmp_path / "own" / "log.csv").open()))
+    joint = next(csv.DictReader((tmp_path / "joint" / "log.csv").open()))
+    assert float(joint["joint_render"]) == pytest.approx(float(own["roughness_render"]), rel=1e-5)
+    assert "roughness_render" not in joint
+
+
+def test_a_joint_rendering_loss_trains_the_networks_together(tmp_path):
+    cfg = TrainConfig(**{**CFG.__dict__, "maps": ("specular", "normal"), "render_with": "joint", "val_every": 0})
+    train(cfg, tmp_path / "a", max_steps=2, progress=False)
+    rows = list(csv.DictReader((tmp_path / "a" / "log.csv").open()))
+    assert len(rows) == 2 and float(rows[-1]["joint_render"]) > 0
+    assert not any(k.endswith("_render") and k != "joint_render" for k in rows[0])
+    with pytest.raises(MatscanError, match="render_with: 'both'"):
+        train(TrainConfig(**{**cfg.__dict__, "render_with": "both"}), tmp_path / "b", progress=False)
+
+
 def test_export_and_load_weights(tmp_path):
     train(CFG, tmp_path / "a", max_steps=1, progress=False)
     out = export_weights(tmp_path / "a" / "checkpoint.safetensors", tmp_path / "w.safetensors", {"note": "x"})
