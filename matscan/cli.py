@@ -584,6 +584,7 @@ def cmd_train(args: argparse.Namespace) -> str:
         "seed",
         "val_every",
         "val_count",
+        "snapshot_every",
         "checkpoint_minutes",
         "init",
         "prior",
@@ -793,6 +794,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=non_negative_int, default=None)
     p.add_argument("--val-every", dest="val_every", type=non_negative_int, default=None)
     p.add_argument("--val-count", dest="val_count", type=positive_int, default=None)
+    p.add_argument(
+        "--snapshot-every",
+        dest="snapshot_every",
+        type=non_negative_int,
+        default=None,
+        metavar="N",
+        help="keep the weights every N steps in RUN/snapshots (float16, filled from --init), "
+        "to score the run along its way (default 0: none)",
+    )
     p.add_argument("--checkpoint-minutes", dest="checkpoint_minutes", type=positive_float, default=None)
     p.add_argument(
         "--init",

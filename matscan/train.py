@@ -7,6 +7,9 @@ One run lives in a folder::
     RUN/checkpoint.safetensors   weights + Adam state + step (overwritten atomically)
     RUN/log.csv                  one row per logged step: losses per map and their terms
     RUN/val.csv                  validation RMSE per map every ``val_every`` steps
+    RUN/snapshots/step-N.safetensors
+                                 the weights at step N, every ``snapshot_every`` steps
+                                 (float16, the networks only, filled from ``init``)
 
 A run is deterministic given its config: sample i of the data, and the novel
 lights of its rendering loss, are fixed by (seed, i); step s uses samples
@@ -119,6 +122,7 @@ class TrainConfig:
     library_prob: float = 0.5  # the share of samples drawn from them, when given
     library_metal_prob: float = 0.0  # the share of those given metal patches (matscan.data.metallize)
     render_with: str = "own"  # "own": each network's rendering term, the rest true; "joint": one for all
+    snapshot_every: int = 0  # keep the weights every N steps in RUN/snapshots (0: none), to score a run along its way
 
     @staticmethod
     def from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
@@ -181,7 +185,7 @@ def data_config(cfg: TrainConfig) -> DataConfig:
 RENDER_WITH = ("own", "joint")
 
 #: TrainConfig fields that say where a run executes, not what it computes: a resume may change them.
-RUNTIME_FIELDS = ("device", "workers", "prefetch")
+RUNTIME_FIELDS = ("device", "workers", "prefetch", "snapshot_every")
 
 
 def resolve_device(name: str, local_rank: int = 0) -> torch.device:
@@ -500,6 +504,8 @@ def train(
     if cfg.workers < 0 or (cfg.workers > 0 and cfg.prefetch < 1):
         raise MatscanError(f"workers {cfg.workers}, prefetch {cfg.prefetch}: need workers ≥ 0 and prefetch ≥ 1")
     data_cfg = data_config(cfg)
+    if cfg.snapshot_every < 0:
+        raise MatscanError(f"snapshot_every: {cfg.snapshot_every} must be 0 (none) or a number of steps")
     if cfg.render_with not in RENDER_WITH:
         raise MatscanError(f"render_with: {cfg.render_with!r} is not one of {', '.join(RENDER_WITH)}")
     if world > 1 and not torch.distributed.is_initialized():
@@ -653,9 +659,12 @@ def train(
                 if cfg.val_every and step % cfg.val_every == 0:
                     last_val = validate(nets, val_samples, rig)
                     _append_csv(val_path, {"step": step, **{k: round(v, 6) for k, v in last_val.items()}})
-                if time.monotonic() - last_ckpt > cfg.checkpoint_minutes * 60:
+                snap = cfg.snapshot_every and step % cfg.snapshot_every == 0
+                if snap or time.monotonic() - last_ckpt > cfg.checkpoint_minutes * 60:
                     save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start, init_record)
                     last_ckpt = time.monotonic()
+                if snap:
+                    snapshot(run, step, cfg)
     finally:
         bar.close()
         if rank == 0:
@@ -665,6 +674,26 @@ def train(
         if world > 1:
             torch.distributed.barrier()
     return {"step": step, "seconds": elapsed + time.monotonic() - t_start, "losses": last_terms, "validation": last_val}
+
+
+SNAPSHOTS = "snapshots"
+
+
+def snapshot(run: Path, step: int, cfg: TrainConfig) -> Path:
+    """The run's weights now (its checkpoint, just written) as a float16 weights file
+    ``RUN/snapshots/step-NNNNNN.safetensors``, the networks it does not train filled from
+    ``init``: a complete set that ``matscan reconstruct --weights`` and the tools that
+    score weights take as it is, so a run can be scored at every snapshot, not only
+    where it stopped."""
+    fill = Path(cfg.init) if cfg.init else None
+    out = run / SNAPSHOTS / f"step-{step:06d}.safetensors"
+    out.parent.mkdir(exist_ok=True)
+    return export_weights(run / CHECKPOINT, out, dtype=torch.float16, fill_from=fill)
+
+
+def snapshots(run: Path) -> list[Path]:
+    """A run's snapshots in step order."""
+    return sorted((Path(run) / SNAPSHOTS).glob("step-*.safetensors"))
 
 
 def _append_csv(path: Path, row: dict[str, Any]) -> None:

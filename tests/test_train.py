@@ -26,6 +26,7 @@ from matscan.train import (
     load_weights,
     resolve_device,
     save_checkpoint,
+    snapshots,
     train,
     training_record,
 )
@@ -207,6 +208,31 @@ def test_export_fills_the_networks_a_run_did_not_train(tmp_path):
     run = float(_metadata(tmp_path / "e" / CHECKPOINT)["elapsed_seconds"])
     for name in ("diffuse", "normal"):
         assert own[name]["elapsed_seconds"] == round(run + record[name]["elapsed_seconds"], 1)
+
+
+def test_snapshots_keep_the_weights_along_the_run_filled_from_init(tmp_path):
+    full = TrainConfig(**{**CFG.__dict__, "val_every": 0})
+    train(full, tmp_path / "b", max_steps=2, progress=False)
+    init = tmp_path / "b" / CHECKPOINT
+    cfg = TrainConfig(**{**full.__dict__, "maps": ("roughness",), "init": str(init), "snapshot_every": 2})
+    train(cfg, tmp_path / "r", max_steps=3, progress=False)
+    assert [p.name for p in snapshots(tmp_path / "r")] == ["step-000002.safetensors"]
+    train(cfg, tmp_path / "r", max_steps=1, progress=False)  # resumed: step 4 is a snapshot too
+    paths = snapshots(tmp_path / "r")
+    assert [p.name for p in paths] == ["step-000002.safetensors", "step-000004.safetensors"]
+    last, meta = load_weights(paths[-1])
+    assert meta["step"] == "4" and last.maps == MAPS
+    ckpt, _ = load_weights(tmp_path / "r" / CHECKPOINT)
+    start, _ = load_weights(init)
+    for name in MAPS:
+        source = ckpt if name == "roughness" else start  # the trained network, the others from init
+        for pa, pb in zip(last.nets[name].parameters(), source.nets[name].parameters(), strict=True):
+            torch.testing.assert_close(pa, pb.half().float(), rtol=0, atol=0)
+    first, _ = load_weights(paths[0])
+    pairs = zip(first.nets["roughness"].parameters(), last.nets["roughness"].parameters(), strict=True)
+    assert max(float((a - b).abs().max()) for a, b in pairs) > 0  # the network trained between them
+    with pytest.raises(MatscanError, match="snapshot_every: -1"):
+        train(TrainConfig(**{**full.__dict__, "snapshot_every": -1}), tmp_path / "n", progress=False)
 
 
 def test_export_takes_some_of_a_runs_networks_and_fills_the_others(tmp_path):

@@ -11,7 +11,13 @@ With ``--per-set COUNT`` it prints each set's numbers at that count instead; wit
 roughness together) is replaced by the true one: which map's error costs the relighting
 most, and where a nearer map relights worse with the other predicted maps beside it.
 
-Run: .venv/bin/python tools/nets_unlike.py WEIGHTS [WEIGHTS ...] [--size 128] [--per-set 2]
+A run folder in place of a weights file stands for its snapshots in step order
+(``matscan train --snapshot-every N``, complete sets filled from the run's init): how far
+the scores wander along one run, which a comparison of two runs' endpoints must exceed.
+With more than one weights file, a table at the end: novel-light RMSE and roughness
+RMSE per count, one row per file.
+
+Run: .venv/bin/python tools/nets_unlike.py WEIGHTS|RUN [...] [--size 128] [--per-set 2]
 [--counts 1,2,3,6,10,16,24] [--levers]
 Weights that hold only some networks are scored with the shipped ones for the others
 (``export_weights(..., fill_from=...)`` first).
@@ -36,6 +42,7 @@ from matscan.materials.photos import TINTS, photo_material  # noqa: E402
 from matscan.reconstruct.networks import predict_maps  # noqa: E402
 from matscan.render import render_maps  # noqa: E402
 from matscan.rig import builtin_rig  # noqa: E402
+from matscan.train import snapshots  # noqa: E402
 from matscan.weights.format import load_weights  # noqa: E402
 
 
@@ -54,7 +61,7 @@ def novel_rmse(p: MapSet, m: MapSet, lights, field_mm) -> float:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("weights", nargs="+", type=Path)
+    parser.add_argument("weights", nargs="+", type=Path, help="weights files, or run folders (their snapshots)")
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--per-set", metavar="COUNT", help="each map set's numbers at this light count")
     parser.add_argument("--levers", action="store_true", help="with --per-set: novel RMSE with each map made true")
@@ -68,7 +75,17 @@ def main() -> int:
     dome = builtin_rig("dome24")
     novel_lights = evaluation_lights(dome)
     counts = [args.per_set] if args.per_set else args.counts.split(",")
+    files = []
     for w in args.weights:
+        if w.is_dir():
+            found = snapshots(w)
+            if not found:
+                parser.error(f"{w}: a folder without snapshots (matscan train --snapshot-every N)")
+            files += found
+        else:
+            files.append(w)
+    table = {}
+    for w in files:
         nets, _ = load_weights(w)
         for count in counts:
             rows = []
@@ -92,12 +109,25 @@ def main() -> int:
                     print(f"    novel with the true map: {', '.join(swapped)}", flush=True)
             if not args.per_set:
                 mean = [sum(r[k] for r in rows) / len(rows) for k in range(5)]
+                table.setdefault(w, {})[count] = (mean[0], mean[3])
                 print(
                     f"{w.name} {count:>2} lights: novel {mean[0]:.4f} diffuse {mean[1]:.4f} specular {mean[2]:.4f} "
                     f"roughness {mean[3]:.4f} normal {mean[4]:.2f}°",
                     flush=True,
                 )
+    if len(table) > 1:
+        name = max(len(_label(w)) for w in table)
+        print(f"\n{'novel RMSE | roughness RMSE':{name}s} " + " ".join(f"{c:>6s}" for c in counts) + " |")
+        for w, row in table.items():
+            novel = " ".join(f"{row[c][0]:.4f}" for c in counts)
+            rough = " ".join(f"{row[c][1]:.4f}" for c in counts)
+            print(f"{_label(w):{name}s} {novel} | {rough}")
     return 0
+
+
+def _label(w: Path) -> str:
+    """A weights file's name; a snapshot's with its run's."""
+    return f"{w.parent.parent.name}/{w.stem}" if w.parent.name == "snapshots" else w.name
 
 
 if __name__ == "__main__":
