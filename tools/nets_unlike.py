@@ -117,7 +117,8 @@ def main() -> int:
                 )
     if len(table) > 1:
         name = max(len(_label(w)) for w in table)
-        print(f"\n{'novel RMSE | roughness RMSE':{name}s} " + " ".join(f"{c:>6s}" for c in counts) + " |")
+        heads = " ".join(f"{c:>6s}" for c in counts)
+        print(f"\nnovel-light RMSE | roughness RMSE, by light count\n{'':{name}s} {heads} | {heads}")
         for w, row in table.items():
             novel = " ".join(f"{row[c][0]:.4f}" for c in counts)
             rough = " ".join(f"{row[c][1]:.4f}" for c in counts)
