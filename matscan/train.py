@@ -682,9 +682,9 @@ SNAPSHOTS = "snapshots"
 def snapshot(run: Path, step: int, cfg: TrainConfig) -> Path:
     """The run's weights now (its checkpoint, just written) as a float16 weights file
     ``RUN/snapshots/step-NNNNNN.safetensors``, the networks it does not train filled from
-    ``init``: a complete set that ``matscan reconstruct --weights`` and the tools that
-    score weights take as it is, so a run can be scored at every snapshot, not only
-    where it stopped."""
+    ``init``: a complete set that ``matscan evaluate --methods nets:FILE`` and
+    ``tools/nets_unlike.py`` take as it is, so a run can be scored at every snapshot,
+    not only where it stopped."""
     fill = Path(cfg.init) if cfg.init else None
     out = run / SNAPSHOTS / f"step-{step:06d}.safetensors"
     out.parent.mkdir(exist_ok=True)
