@@ -126,7 +126,15 @@ def _choice_note(choice: dict | None) -> str:
     if not choice:
         return ""
     if "left_out" in choice:
-        return f" ({choice['chosen']}: the best at predicting {len(choice['left_out'])} photo(s) left out)"
+        left = f"{len(choice['left_out'])} photo(s) left out"
+        scores = choice["rmse_left_out"]
+        default = next(iter(scores))
+        if choice["chosen"] != default:
+            return f" ({choice['chosen']}: clearly the best at predicting {left})"
+        if min(scores, key=scores.get) != default:
+            margin = choice.get("margin", 0.0)
+            return f" ({default}: the default; no other predicted the {left} {margin:.0%} better)"
+        return f" ({default}: the best at predicting {left})"
     return f" ({choice['chosen']}: the rule for {choice['rule']})"
 
 
@@ -730,7 +738,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--methods",
         default="baseline,nets,nets+refine,fit",
-        help="baseline, nets, nets+refine, fit, or nets:FILE / nets+refine:FILE for other weights",
+        help="baseline, nets, nets+refine, fit, auto, or nets:FILE / nets+refine:FILE / auto:FILE for other weights",
     )
     p.add_argument(
         "--jobs", type=positive_int, default=1, help="worker processes, one capture each at a time (default 1)"

@@ -15,7 +15,7 @@ import time
 import zlib
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
@@ -27,6 +27,9 @@ from matscan.mapset import MapSet
 from matscan.nets import MAPS, MapNets, network_input
 from matscan.render import flat_albedo, flat_irradiance, render, surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
+
+if TYPE_CHECKING:
+    from matscan.capture import Capture
 
 BASELINE_ROUGHNESS = 0.5
 BASELINE_SPECULAR = 0.04
@@ -117,7 +120,7 @@ def subset_table(
 #: does from 10 photos up); "fit": per-pixel fitting alone (same renderer and optimiser,
 #: from the flat start); "auto": what `matscan reconstruct` does by default (the networks,
 #: then refinement where ``--refine auto`` chooses it). Any other weights file is given
-#: as "nets:PATH" (or "nets+refine:PATH"): ablation variants.
+#: as "nets:PATH" (or "nets+refine:PATH", "auto:PATH"): ablation variants and candidates.
 METHODS = ("baseline", "nets", "nets+refine", "fit", "auto")
 ENCODINGS = {"srgb8": ("srgb", 8), "linear16": ("linear", 16)}
 
@@ -179,7 +182,9 @@ def _method_nets(method: str, cache: dict) -> tuple[MapNets | None, str]:
     if kind in ("fit", "baseline") and not path:
         return None, refine
     if kind not in ("nets", "nets+refine", "auto"):
-        raise MatscanError(f"methods: {method!r} is not one of {', '.join(METHODS)} or nets:FILE, nets+refine:FILE")
+        raise MatscanError(
+            f"methods: {method!r} is not one of {', '.join(METHODS)} or nets:FILE, nets+refine:FILE, auto:FILE"
+        )
     key = path or "default"
     if key not in cache:
         from matscan.weights import load_model
@@ -195,8 +200,10 @@ def check_methods(methods: Sequence[str], encodings: Sequence[str]) -> None:
             raise MatscanError(f"encodings: {enc!r} is not one of {', '.join(ENCODINGS)}")
     for method in methods:
         kind, _, path = method.partition(":")
-        if kind not in METHODS or (path and kind not in ("nets", "nets+refine")):
-            raise MatscanError(f"methods: {method!r} is not one of {', '.join(METHODS)} or nets:FILE, nets+refine:FILE")
+        if kind not in METHODS or (path and kind not in ("nets", "nets+refine", "auto")):
+            raise MatscanError(
+                f"methods: {method!r} is not one of {', '.join(METHODS)} or nets:FILE, nets+refine:FILE, auto:FILE"
+            )
         if path:
             from matscan.weights import model_path
 
@@ -206,6 +213,34 @@ def check_methods(methods: Sequence[str], encodings: Sequence[str]) -> None:
 
 #: Networks loaded in this process, by weights name or path.
 _NETS_CACHE: dict = {}
+
+
+def study_capture(name: str, truth: MapSet, enc: str, subset: str, rig_name: str, noise: float) -> Capture:
+    """The study's capture of ``truth`` through the rig's light ``subset`` in encoding
+    ``enc``: noise seeded by material, encoding and subset, so every method, every run
+    and every tool that asks sees the same photos."""
+    from matscan.capture import Capture
+    from matscan.capture.virtual import CameraModel, simulate_images
+
+    rig = resolve_rig(rig_name)
+    encoding, bits = ENCODINGS[enc]
+    indices = list(rig.subset(subset))
+    seed = zlib.crc32(f"{name}|{enc}|{subset}".encode())
+    ls = rig.light_set(indices)
+    photos = simulate_images(
+        truth, ls, rig.field_mm, CameraModel(read_noise=noise, encoding=encoding, bits=bits), seed=seed
+    )
+    top = 1.0 - 0.5 / ((1 << bits) - 1)
+    return Capture(
+        rig,
+        rig.field_mm,
+        encoding,
+        photos,
+        (photos >= top).any(1, keepdim=True),
+        tuple(indices),
+        ls,
+        tuple(f"led_{k:02d}" for k in indices),
+    )
 
 
 def study_job(
@@ -218,32 +253,12 @@ def study_job(
     refine_steps: int,
     noise: float,
 ) -> list[dict[str, Any]]:
-    """One capture of the study: simulate ``truth`` through the rig's light ``subset`` in
-    encoding ``enc`` (noise seeded by material, encoding and subset, so every method and
-    every run sees the same photos), reconstruct with each method, and score."""
-    from matscan.capture import Capture
-    from matscan.capture.virtual import CameraModel, simulate_images
+    """One capture of the study (:func:`study_capture`), reconstructed with each method
+    and scored."""
     from matscan.reconstruct import ReconstructConfig, reconstruct_capture
 
     rig = resolve_rig(rig_name)
-    encoding, bits = ENCODINGS[enc]
-    indices = list(rig.subset(subset))
-    seed = zlib.crc32(f"{name}|{enc}|{subset}".encode())
-    ls = rig.light_set(indices)
-    photos = simulate_images(
-        truth, ls, rig.field_mm, CameraModel(read_noise=noise, encoding=encoding, bits=bits), seed=seed
-    )
-    top = 1.0 - 0.5 / ((1 << bits) - 1)
-    capture = Capture(
-        rig,
-        rig.field_mm,
-        encoding,
-        photos,
-        (photos >= top).any(1, keepdim=True),
-        tuple(indices),
-        ls,
-        tuple(f"led_{k:02d}" for k in indices),
-    )
+    capture = study_capture(name, truth, enc, subset, rig_name, noise)
     rows = []
     for method in methods:
         nets, refine = _method_nets(method, _NETS_CACHE)
