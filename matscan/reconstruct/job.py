@@ -219,7 +219,8 @@ def evidence_winner(scores: dict[str, float], margin: float = EVIDENCE_MARGIN) -
 #: 0.0653, the networks refined 0.0618; on 8 procedural ones 0.0614, 0.0591 and 0.0609.
 #: The networks win on 11 of the 16 and in the mean of both sets; where they lose, the
 #: solver's maps are the trivial baseline's (one photo fixes nothing else), and refining
-#: the networks' maps from that one photo moves them toward it.
+#: the networks' maps from that one photo moves them toward it. With weights 7ae143b9
+#: (G_g from runs/dome24-mix6-cpu) the networks give 0.0592 and 0.0571.
 ONE_PHOTO = "networks"
 ALL_CANDIDATES = {"networks": (True, "off"), **CANDIDATES}
 
