@@ -1,5 +1,6 @@
 """tools/model_card.py keeps the card's unlike section across rewrites: marked stale
-once when the weights changed, unmarked again when they are the ones it was made with."""
+once when the weights changed, unmarked again when they are the ones it was made with;
+and that section says where the networks' map errors rise with more lights."""
 
 from __future__ import annotations
 
@@ -58,3 +59,25 @@ def test_unlike_section_is_marked_stale_once_and_unmarked_for_its_own_weights(tm
     assert rewrite(tool, own, weights) == own
     marked = own.replace("set\n\n", "set\n\n" + tool.STALE + "\n\n", 1)
     assert rewrite(tool, marked, weights) == own
+
+
+def test_unlike_section_names_each_rise_of_a_map_error_with_more_lights():
+    tool = load_tool()
+
+    def row(material, lights, method, roughness, degrees):
+        scores = {"rmse_diffuse": 0.05, "rmse_specular": 0.1, "rmse_roughness": roughness}
+        return {"material": material, "lights": lights, "method": method, "normal_degrees": degrees, **scores}
+
+    # two sets; means of roughness 0.15, 0.12, 0.13 (a rise from 2 to 3) and degrees 8, 7, 7 (none)
+    rows = [
+        row("photo-a", "1", "nets", 0.10, 8.0),
+        row("artist-b", "1", "nets", 0.20, 8.0),
+        row("photo-a", "2", "nets", 0.10, 7.0),
+        row("artist-b", "2", "nets", 0.14, 7.0),
+        row("photo-a", "3", "nets", 0.11, 7.5),
+        row("artist-b", "3", "nets", 0.15, 6.5),
+        row("photo-a", "3", "fit", 0.90, 30.0),  # other methods do not count
+    ]
+    assert tool.unlike_rises(rows, ["1", "2", "3"]) == "roughness from 2 to 3 lights (0.120 → 0.130)"
+    flat = [r | {"rmse_roughness": 0.1} for r in rows]
+    assert tool.unlike_rises(flat, ["1", "2", "3"]) == "nowhere"

@@ -87,6 +87,7 @@ def unlike_section(results: Path, weights: Path) -> list[str]:
                 )
                 + " |"
             )
+    lines += ["", "Where the networks' map errors rise as lights are added: " + unlike_rises(rows, doc["lights"]) + "."]
     for other in ("baseline", "fit"):
         counts = [n for n in doc["lights"] if (n, "nets") in novel and (n, other) in novel]
         below = [n for n in counts if novel[n, "nets"] < novel[n, other]]
@@ -94,6 +95,29 @@ def unlike_section(results: Path, weights: Path) -> list[str]:
         lines += ["", f"The networks' novel-light error is below the {other}'s at {where}."]
     lines += ["", f"Made with `.venv/bin/python tools/model_card.py --unlike {results}`.", ""]
     return lines
+
+
+def unlike_rises(rows: list[dict], lights: list[str]) -> str:
+    """Each map error of the networks alone (``nets``; mean over the map sets) that is
+    higher at a light count than at the one before it, or "nowhere"."""
+    means = {}
+    for n in lights:
+        sel = [r for r in rows if r["lights"] == n and r["method"] == "nets"]
+        if sel:
+            means[n] = {c: sum(r[c] for r in sel) / len(sel) for c in UNLIKE_COLUMNS[:-1]}
+    names = list(means)
+    rises = [
+        f"{c.removeprefix('rmse_').replace('_', ' ')} from {a} to {b} lights "
+        + (
+            f"({means[a][c]:.1f} → {means[b][c]:.1f})"
+            if c == "normal_degrees"
+            else f"({means[a][c]:.3f} → {means[b][c]:.3f})"
+        )
+        for c in UNLIKE_COLUMNS[:-1]
+        for a, b in zip(names, names[1:], strict=False)
+        if means[b][c] > means[a][c]
+    ]
+    return "; ".join(rises) if rises else "nowhere"
 
 
 def replace_unlike(card: str, section: list[str]) -> str:
