@@ -19,6 +19,8 @@ RMSE per count, one row per file.
 
 Run: .venv/bin/python tools/nets_unlike.py WEIGHTS|RUN [...] [--size 128] [--per-set 2]
 [--counts 1,2,3,6,10,16,24] [--levers]
+A count may be a list of dome24 lights joined by + (``--counts 6,4+8+12+16+20``): how much
+the scores move between subsets of about one size, which a trend over counts must exceed.
 Weights that hold only some networks are scored with the shipped ones for the others
 (``export_weights(..., fill_from=...)`` first).
 """
@@ -65,7 +67,11 @@ def main() -> int:
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--per-set", metavar="COUNT", help="each map set's numbers at this light count")
     parser.add_argument("--levers", action="store_true", help="with --per-set: novel RMSE with each map made true")
-    parser.add_argument("--counts", default="1,2,3,6,24", help="light counts (Table 4 subsets; default 1,2,3,6,24)")
+    parser.add_argument(
+        "--counts",
+        default="1,2,3,6,24",
+        help="light counts (Table 4 subsets; default 1,2,3,6,24), or light lists joined by + (0+4+8)",
+    )
     args = parser.parse_args()
     if args.levers and not args.per_set:
         parser.error("--levers needs --per-set COUNT")
@@ -90,7 +96,7 @@ def main() -> int:
         for count in counts:
             rows = []
             for i, m in enumerate(mats):
-                p = predict_maps(nets, capture_of(m, dome, dome.subset(count), seed=i))
+                p = predict_maps(nets, capture_of(m, dome, dome.subset(count.replace("+", ",")), seed=i))
                 s = map_scores(p, m)
                 scores = (s["rmse_diffuse"], s["rmse_specular"], s["rmse_roughness"], s["normal_degrees"])
                 rows.append((novel_rmse(p, m, novel_lights, dome.field_mm), *scores))
