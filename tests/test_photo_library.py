@@ -65,7 +65,8 @@ def test_the_tool_builds_readable_map_sets_and_names_their_sources(tmp_path):
     tool = load_tool()
     pkg = tmp_path / "pkg"
     rng = np.random.default_rng(0)
-    for i, (path, _, _) in enumerate(tool.PHOTOS.values()):
+    assert not {p for p, _, _ in tool.PHOTOS.values()} & {p for p, _, _ in tool.SELECTION.values()}
+    for i, (path, _, _) in enumerate([*tool.PHOTOS.values(), *tool.SELECTION.values()]):
         f = pkg / tool.ROOT.removeprefix("./") / path
         f.parent.mkdir(parents=True, exist_ok=True)
         img = rng.random((40 + i, 48, 3)).astype(np.float32)  # not square: the centre square is taken
@@ -89,6 +90,15 @@ def test_the_tool_builds_readable_map_sets_and_names_their_sources(tmp_path):
     sources = (out / "SOURCES.md").read_text()
     for name, (path, licence, _) in tool.PHOTOS.items():
         assert f"| {name} | `{path}` | {licence} |" in sources
+    # the selection sets: their own photos and their own heading, never the training ones
+    chosen = tmp_path / "selection"
+    assert tool.main([str(chosen), "--deb", str(deb), "--size", "32", "--selection"]) == 0
+    assert sorted(p.name for p in chosen.iterdir() if p.is_dir()) == sorted(tool.SELECTION)
+    sources = (chosen / "SOURCES.md").read_text()
+    assert "never for training" in sources.splitlines()[0]
+    for name, (path, licence, _) in tool.SELECTION.items():
+        assert f"| {name} | `{path}` | {licence} |" in sources
+    assert not any(f"`{path}`" in sources for path, _, _ in tool.PHOTOS.values())
     # a second run refuses the folder it filled; a .deb without the photos is named
     assert tool.main([str(out), "--deb", str(deb)]) == 1
     empty = tmp_path / "empty"

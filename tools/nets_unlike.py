@@ -18,7 +18,10 @@ With more than one weights file, a table at the end: novel-light RMSE and roughn
 RMSE per count, one row per file.
 
 Run: .venv/bin/python tools/nets_unlike.py WEIGHTS|RUN [...] [--size 128] [--per-set 2]
-[--counts 1,2,3,6,10,16,24] [--levers]
+[--counts 1,2,3,6,10,16,24] [--levers] [--mapsets DIR]
+``--mapsets DIR`` scores the map set folders in DIR instead (resampled to SIZE²), e.g.
+the selection sets of ``tools/photo_library.py DIR --selection``: choosing among
+snapshots there leaves the unlike sets to evaluate the choice.
 A count may be a list of dome24 lights joined by + (``--counts 6,4+8+12+16+20``): how much
 the scores move between subsets of about one size, which a trend over counts must exceed.
 Weights that hold only some networks are scored with the shipped ones for the others
@@ -37,9 +40,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
 
 from anyrig import capture_of  # noqa: E402
 
+from matscan.capture.virtual import resize_maps  # noqa: E402
 from matscan.evaluate import evaluation_lights, map_scores  # noqa: E402
 from matscan.mapset import MapSet  # noqa: E402
 from matscan.materials.artist import ARTIST_NAMES, artist_material  # noqa: E402
+from matscan.materials.library import read_any  # noqa: E402
 from matscan.materials.photos import TINTS, photo_material  # noqa: E402
 from matscan.reconstruct.networks import predict_maps  # noqa: E402
 from matscan.render import render_maps  # noqa: E402
@@ -56,6 +61,11 @@ def rmse(a: torch.Tensor, b: torch.Tensor) -> float:
 LEVERS = (("diffuse",), ("specular",), ("roughness",), ("normal",), ("specular", "roughness"))
 
 
+def sized(maps: MapSet, size: int) -> MapSet:
+    """The maps at size² (resampled where they are another size)."""
+    return maps if maps.size == (size, size) else resize_maps(maps, size)
+
+
 def novel_rmse(p: MapSet, m: MapSet, lights, field_mm) -> float:
     with torch.no_grad():
         return rmse(render_maps(p, lights, field_mm).clamp(0, 1), render_maps(m, lights, field_mm).clamp(0, 1))
@@ -68,6 +78,11 @@ def main() -> int:
     parser.add_argument("--per-set", metavar="COUNT", help="each map set's numbers at this light count")
     parser.add_argument("--levers", action="store_true", help="with --per-set: novel RMSE with each map made true")
     parser.add_argument(
+        "--mapsets",
+        type=Path,
+        help="score the map set folders in this folder instead (tools/photo_library.py OUT --selection)",
+    )
+    parser.add_argument(
         "--counts",
         default="1,2,3,6,24",
         help="light counts (Table 4 subsets; default 1,2,3,6,24), or light lists joined by + (0+4+8)",
@@ -76,8 +91,15 @@ def main() -> int:
     if args.levers and not args.per_set:
         parser.error("--levers needs --per-set COUNT")
     torch.set_num_threads(2)
-    names = [f"artist-{n}" for n in ARTIST_NAMES] + [f"photo-{n}" for n in TINTS]
-    mats = [artist_material(n, args.size) for n in ARTIST_NAMES] + [photo_material(n, args.size) for n in TINTS]
+    if args.mapsets is not None:
+        folders = sorted(p for p in args.mapsets.iterdir() if (p / "mapset.json").is_file())
+        if not folders:
+            parser.error(f"{args.mapsets}: no map set folders in it")
+        names = [p.name for p in folders]
+        mats = [sized(read_any(p), args.size) for p in folders]
+    else:
+        names = [f"artist-{n}" for n in ARTIST_NAMES] + [f"photo-{n}" for n in TINTS]
+        mats = [artist_material(n, args.size) for n in ARTIST_NAMES] + [photo_material(n, args.size) for n in TINTS]
     dome = builtin_rig("dome24")
     novel_lights = evaluation_lights(dome)
     counts = [args.per_set] if args.per_set else args.counts.split(",")

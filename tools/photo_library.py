@@ -13,7 +13,12 @@ The map sets are training data: name them in a training config's ``library`` (da
 mixes them with the procedural prior). Nothing is copied into the package, and nothing
 downloads at run time: this script runs by hand, before training.
 
+``--selection`` builds ``SELECTION`` instead: six more photographs of the package, kept
+out of training, on which to choose among networks (snapshots of a run) so that the
+evaluation sets are not used to choose.
+
 Run: .venv/bin/python tools/photo_library.py OUT [--deb supertuxkart-data_*.deb] [--size 512] [--sheet PNG]
+[--selection]
 (without ``--deb``, ``apt-get download supertuxkart-data`` fetches the package, 628 MB).
 """
 
@@ -66,6 +71,19 @@ PHOTOS: dict[str, tuple[str, str, str]] = {
     "rusty-metal": ("data/tracks/endcutscene/metal.jpg", "public-domain", "rusted metal"),
 }
 
+#: Photographs of the same package kept out of training, for choosing among networks
+#: (a run's snapshots, ``tools/nets_unlike.py --mapsets``) without touching the evaluation
+#: sets: ``--selection`` builds these instead of PHOTOS. Never name them in a training
+#: config's ``library``. Same format as PHOTOS; no file of one is in the other.
+SELECTION: dict[str, tuple[str, str, str]] = {
+    "carpet": ("data/tracks/endcutscene/carpet.jpg", "public-domain", "knotted carpet"),
+    "plaster-wall": ("data/textures/cottage_wall3.jpg", "public-domain", "rendered plaster wall"),
+    "wood-planks": ("data/textures/wood_planks1.jpg", "public-domain", "vertical wooden planks"),
+    "rock-wall": ("data/textures/rockwaterfall.jpg", "public-domain", "wet grey rock face"),
+    "bridge-wood": ("data/textures/woodBridge.jpg", "public-domain", "weathered dark planks"),
+    "red-wood": ("data/textures/japanRedWood.png", "public-domain", "red-painted wood"),
+}
+
 
 def fetch(workdir: Path) -> Path:
     """``apt-get download`` the package into workdir; the .deb's path."""
@@ -80,9 +98,9 @@ def fetch(workdir: Path) -> Path:
     return debs[-1]
 
 
-def extract(deb: Path, into: Path) -> dict[str, Path]:
+def extract(deb: Path, into: Path, photos: dict[str, tuple[str, str, str]] = PHOTOS) -> dict[str, Path]:
     """The listed photos out of the .deb (streamed through ``dpkg-deb --fsys-tarfile``)."""
-    wanted = {ROOT + path: name for name, (path, _, _) in PHOTOS.items()}
+    wanted = {ROOT + path: name for name, (path, _, _) in photos.items()}
     found: dict[str, Path] = {}
     with subprocess.Popen(["dpkg-deb", "--fsys-tarfile", str(deb)], stdout=subprocess.PIPE) as proc:
         assert proc.stdout is not None
@@ -98,9 +116,9 @@ def extract(deb: Path, into: Path) -> dict[str, Path]:
                 found[name] = out
     if proc.returncode:
         raise MatscanError(f"{deb}: dpkg-deb could not read it (exit {proc.returncode})")
-    missing = sorted(set(PHOTOS) - set(found))
+    missing = sorted(set(photos) - set(found))
     if missing:
-        raise MatscanError(f"{deb}: lacks {', '.join(PHOTOS[m][0] for m in missing)} (another version of {PACKAGE}?)")
+        raise MatscanError(f"{deb}: lacks {', '.join(photos[m][0] for m in missing)} (another version of {PACKAGE}?)")
     return found
 
 
@@ -116,24 +134,28 @@ def photo_tensor(path: Path, size: int) -> torch.Tensor:
     return F.interpolate(t[None], size=(size, size), mode="area")[0].clamp(0, 1)
 
 
-def build(deb: Path, out: Path, size: int, sheet: Path | None = None) -> list[Path]:
-    """Map set folders out/NAME and out/SOURCES.md from the .deb; returns the folders."""
+def build(deb: Path, out: Path, size: int, sheet: Path | None = None, selection: bool = False) -> list[Path]:
+    """Map set folders out/NAME and out/SOURCES.md from the .deb (of SELECTION where
+    ``selection``, else of PHOTOS); returns the folders."""
+    chosen = SELECTION if selection else PHOTOS
     if out.exists() and any(out.iterdir()):
         raise MatscanError(f"{out}: exists and is not empty; choose another folder")
     digest = hashlib.sha256(deb.read_bytes()).hexdigest()
     out.mkdir(parents=True, exist_ok=True)
     folders, tiles = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        photos = extract(deb, Path(tmp))
-        for name in PHOTOS:
+        photos = extract(deb, Path(tmp), chosen)
+        for name in chosen:
             maps = maps_from_photo(photo_tensor(photos[name], size))
-            folders.append(write_mapset(out / name, maps, extra_meta={"source": f"{PACKAGE}: {PHOTOS[name][0]}"}))
+            folders.append(write_mapset(out / name, maps, extra_meta={"source": f"{PACKAGE}: {chosen[name][0]}"}))
             if sheet is not None:
                 from matscan.report.sheet import to_display
 
                 tiles += [(name, to_display(maps.diffuse)), ("normal", to_display(maps.normal, "normal"))]
     lines = [
-        f"# Training map sets from {PACKAGE}",
+        f"# Selection map sets from {PACKAGE} (never for training)"
+        if selection
+        else f"# Training map sets from {PACKAGE}",
         "",
         f"Built by tools/photo_library.py from `{deb.name}` (SHA-256 {digest}).",
         f"Licences as the package's `usr/share/doc/{PACKAGE}/copyright` gives them.",
@@ -141,7 +163,7 @@ def build(deb: Path, out: Path, size: int, sheet: Path | None = None) -> list[Pa
         "| map set | file in the package | licence | shows |",
         "|---|---|---|---|",
     ]
-    lines += [f"| {n} | `{p}` | {lic} | {what} |" for n, (p, lic, what) in PHOTOS.items()]
+    lines += [f"| {n} | `{p}` | {lic} | {what} |" for n, (p, lic, what) in chosen.items()]
     (out / "SOURCES.md").write_text("\n".join(lines) + "\n")
     if sheet is not None:
         from matscan.report.sheet import contact_sheet, save_sheet
@@ -156,13 +178,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--deb", type=Path, help=f"a downloaded {PACKAGE} .deb (default: apt-get download it)")
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--sheet", type=Path, help="also write a contact sheet (diffuse and normal of each)")
+    ap.add_argument("--selection", action="store_true", help="build the selection sets (SELECTION), not training ones")
     args = ap.parse_args(argv)
     try:
         with tempfile.TemporaryDirectory() as tmp:
             deb = args.deb if args.deb is not None else fetch(Path(tmp))
             if not deb.is_file():
                 raise MatscanError(f"{deb}: no such file")
-            folders = build(deb, args.out, args.size, args.sheet)
+            folders = build(deb, args.out, args.size, args.sheet, args.selection)
     except MatscanError as e:
         print(f"photo_library: {e}", file=sys.stderr)
         return 1
