@@ -261,12 +261,14 @@ def atomic_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
 @contextmanager
 def atomic_file(path: str | Path) -> Iterator[Path]:
     """Yield a temporary file name (same suffix as ``path``) that replaces ``path``
-    atomically (``os.replace``) when the block succeeds; removed on failure."""
+    atomically (``os.replace``) when the block succeeds; removed on failure. Temporaries
+    of ``path`` left by killed writers are removed first (:func:`clean_stale`)."""
     path = Path(path)
     tmp = temp_path(path)
     tmp = tmp.with_name(tmp.name + path.suffix)  # writers choose the format by suffix
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        clean_stale(path)
         yield tmp
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from matscan.atomic import atomic_folder, clean_stale, exchange, output_lock, replace_folder
+from matscan.atomic import atomic_folder, clean_stale, exchange, output_lock, replace_folder, write_text
 from matscan.capture.folder import write_capture
 from matscan.cli import main
 from matscan.errors import MatscanError
@@ -299,6 +299,25 @@ def test_killed_writer_leaves_temporaries_that_the_next_run_removes(tmp_path, ca
         (tmp / "whole.png").write_bytes(b"whole")
     assert sorted(p.name for p in out.iterdir()) == ["matscan.json", "whole.png"]
     assert litter(tmp_path) == []
+
+
+def test_a_killed_file_writer_leaves_a_temporary_that_the_next_write_removes(tmp_path):
+    # as when `matscan acquire` is killed while rewriting capture.json after a frame
+    path = tmp_path / "capture.json"
+    victim = _python(
+        f"""
+        import os, signal
+        from matscan.atomic import atomic_file
+        with atomic_file({str(path)!r}) as tmp:
+            tmp.write_text("half")
+            os.kill(os.getpid(), signal.SIGKILL)
+        """
+    )
+    victim.wait()
+    assert victim.returncode == -signal.SIGKILL
+    assert any(".capture.json.matscan-tmp-" in name for name in litter(tmp_path))
+    write_text(path, "whole")
+    assert path.read_text() == "whole" and litter(tmp_path) == []
 
 
 def test_temporaries_of_a_live_process_are_kept(tmp_path):
