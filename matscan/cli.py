@@ -588,6 +588,7 @@ def cmd_train(args: argparse.Namespace) -> str:
         "steps",
         "render_lights",
         "render_with",
+        "named_subset_prob",
         "workers",
         "seed",
         "val_every",
@@ -797,6 +798,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="rendering loss: own (each network's, the other maps true; the paper's, the default) "
         "or joint (all trained maps' predictions rendered together)",
+    )
+    p.add_argument(
+        "--named-subset-prob",
+        dest="named_subset_prob",
+        type=float,
+        default=None,
+        metavar="P",
+        help="share of samples lit by one of the rig's named subsets, the rest by random ones (default 0.5; "
+        "docs/results.md 'Which lights' measures what the default costs on other subsets)",
     )
     p.add_argument("--workers", type=non_negative_int, default=None, help="data worker processes")
     p.add_argument("--seed", type=non_negative_int, default=None)

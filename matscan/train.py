@@ -122,6 +122,7 @@ class TrainConfig:
     library_prob: float = 0.5  # the share of samples drawn from them, when given
     library_metal_prob: float = 0.0  # the share of those given metal patches (matscan.data.metallize)
     render_with: str = "own"  # "own": each network's rendering term, the rest true; "joint": one for all
+    named_subset_prob: float = 0.5  # the share of samples lit by one of the rig's named subsets (the rest: random)
     snapshot_every: int = 0  # keep the weights every N steps in RUN/snapshots (0: none), to score a run along its way
 
     @staticmethod
@@ -170,6 +171,8 @@ def data_config(cfg: TrainConfig) -> DataConfig:
         raise MatscanError(f"library_prob: {cfg.library_prob!r} must be between 0 and 1")
     if not 0 <= cfg.library_metal_prob <= 1:
         raise MatscanError(f"library_metal_prob: {cfg.library_metal_prob!r} must be between 0 and 1")
+    if not 0 <= cfg.named_subset_prob <= 1:
+        raise MatscanError(f"named_subset_prob: {cfg.named_subset_prob!r} must be between 0 and 1")
     return DataConfig(
         rig=cfg.rig,
         crop=cfg.crop,
@@ -178,6 +181,7 @@ def data_config(cfg: TrainConfig) -> DataConfig:
         library=cfg.library,
         library_prob=cfg.library_prob,
         library_metal_prob=cfg.library_metal_prob,
+        named_subset_prob=cfg.named_subset_prob,
     )
 
 

@@ -85,6 +85,26 @@ def test_light_subsets_include_table4():
     assert fixed["present"].nonzero().flatten().tolist() == [0, 4, 8, 12, 16, 20]
 
 
+@pytest.mark.parametrize("prob", [0.0, 0.2, 1.0])
+def test_named_subset_share_follows_the_training_setting(prob):
+    # a random draw of k of 24 lights is one of Table 4's subsets with probability 1/24 · Σ_k 1/C(24, k)
+    # over the named counts (about 0.045: mostly "24", then "1"); the named draws add prob of the rest
+    from math import comb
+
+    from matscan.train import TrainConfig, data_config
+
+    named = set(DOME24_SUBSETS.values())
+    chance = sum(1 / comb(24, len(v)) for v in named) / 24
+    ds = SvbrdfDataset(data_config(TrainConfig(named_subset_prob=prob, crop=16)))
+    n = 2000
+    hits = sum(tuple(ds.light_subset(torch.Generator().manual_seed(i))) in named for i in range(n))
+    expected = prob + (1 - prob) * chance
+    sd = (expected * (1 - expected) / n) ** 0.5
+    assert abs(hits / n - expected) <= 4 * sd + 1e-9
+    with pytest.raises(MatscanError, match="named_subset_prob"):
+        data_config(TrainConfig(named_subset_prob=1.5))
+
+
 def test_noise_free_sample_is_the_rendering_of_its_maps(tmp_path):
     # without jitter and noise, 16-bit linear photos are the rendering at the crop's world position
     from matscan.mapset import write_mapset

@@ -74,6 +74,24 @@ def test_missing_led_capture_reconstructs(tmp_path):
     assert any("lights 5 of rig dome24 are missing" in w for w in res.warnings)
 
 
+def test_lights_outside_the_named_subsets_are_flagged_when_networks_read_them(tmp_path):
+    from matscan.reconstruct.job import unnamed_subset
+
+    named, _ = _capture(tmp_path, size=16, lights=[0, 4, 8, 12, 16, 20], name="named")  # Table 4's 6
+    other, _ = _capture(tmp_path, size=16, lights=[1, 2, 4, 10, 12, 20], name="other")
+    whole, _ = _capture(tmp_path, size=16, name="whole")
+    assert unnamed_subset(named) is None and unnamed_subset(whole) is None
+    assert "lights 1, 2, 4, 10, 12, 20 are not one of rig dome24's named subsets (1, 2, 3, 6, 10, 16, 24)" in (
+        unnamed_subset(other) or ""
+    )
+    nets = MapNets(24, PRESETS["tiny"]).eval()
+    cfg = ReconstructConfig(refine="off")
+    assert any("not one of rig dome24's named subsets" in w for w in reconstruct_capture(other, cfg, nets).warnings)
+    assert not any("named subsets" in w for w in reconstruct_capture(named, cfg, nets).warnings)
+    # without networks the solver reads any lights alike: nothing to flag
+    assert not any("named subsets" in w for w in reconstruct_capture(other, cfg, None).warnings)
+
+
 def test_alpha_from_simulated_mesh(tmp_path):
     from matscan.mapset import MapSet
     from matscan.reconstruct import alpha_from_backlight

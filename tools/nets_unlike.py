@@ -14,14 +14,17 @@ most, and where a nearer map relights worse with the other predicted maps beside
 A run folder in place of a weights file stands for its snapshots in step order
 (``matscan train --snapshot-every N``, complete sets filled from the run's init): how far
 the scores wander along one run, which a comparison of two runs' endpoints must exceed.
-With more than one weights file, a table at the end: novel-light RMSE and roughness
-RMSE per count, one row per file.
+With more than one weights file, tables at the end: novel-light RMSE and roughness
+RMSE per count, and every score's mean over the counts, one row per file.
 
 Run: .venv/bin/python tools/nets_unlike.py WEIGHTS|RUN [...] [--size 128] [--per-set 2]
 [--counts 1,2,3,6,10,16,24] [--levers] [--mapsets DIR]
 ``--mapsets DIR`` scores the map set folders in DIR instead (resampled to SIZE²), e.g.
 the selection sets of ``tools/photo_library.py DIR --selection``: choosing among
 snapshots there leaves the unlike sets to evaluate the choice.
+``--procedural N [--prior v4]`` scores N procedural materials of that prior instead, with
+the selection seeds 2^42 + i (training draws seeds below 2^40, the studies 2^41 + i): how
+the networks do on the distribution they were trained on.
 A count may be a list of dome24 lights joined by + (``--counts 6,4+8+12+16+20``): how much
 the scores move between subsets of about one size, which a trend over counts must exceed.
 Weights that hold only some networks are scored with the shipped ones for the others
@@ -46,11 +49,15 @@ from matscan.mapset import MapSet  # noqa: E402
 from matscan.materials.artist import ARTIST_NAMES, artist_material  # noqa: E402
 from matscan.materials.library import read_any  # noqa: E402
 from matscan.materials.photos import TINTS, photo_material  # noqa: E402
+from matscan.materials.procedural import PRIORS, random_material  # noqa: E402
 from matscan.reconstruct.networks import predict_maps  # noqa: E402
 from matscan.render import render_maps  # noqa: E402
 from matscan.rig import builtin_rig  # noqa: E402
 from matscan.train import snapshots  # noqa: E402
 from matscan.weights.format import load_weights  # noqa: E402
+
+#: Procedural seeds of ``--procedural``: 2^42 + i, beyond training's (< 2^40) and the studies' (2^41 + i).
+SELECTION_SEED = 2**42
 
 
 def rmse(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -82,6 +89,8 @@ def main() -> int:
         type=Path,
         help="score the map set folders in this folder instead (tools/photo_library.py OUT --selection)",
     )
+    parser.add_argument("--procedural", type=int, metavar="N", help="score N procedural materials instead")
+    parser.add_argument("--prior", default="v1", choices=sorted(PRIORS), help="with --procedural (default v1)")
     parser.add_argument(
         "--counts",
         default="1,2,3,6,24",
@@ -91,7 +100,13 @@ def main() -> int:
     if args.levers and not args.per_set:
         parser.error("--levers needs --per-set COUNT")
     torch.set_num_threads(2)
-    if args.mapsets is not None:
+    if args.mapsets is not None and args.procedural:
+        parser.error("--mapsets and --procedural: choose one")
+    if args.procedural:
+        drawn = [random_material(args.size, SELECTION_SEED + i, prior=args.prior) for i in range(args.procedural)]
+        names = [f"{family}-{i}" for i, (family, _) in enumerate(drawn)]
+        mats = [m for _, m in drawn]
+    elif args.mapsets is not None:
         folders = sorted(p for p in args.mapsets.iterdir() if (p / "mapset.json").is_file())
         if not folders:
             parser.error(f"{args.mapsets}: no map set folders in it")
@@ -137,7 +152,7 @@ def main() -> int:
                     print(f"    novel with the true map: {', '.join(swapped)}", flush=True)
             if not args.per_set:
                 mean = [sum(r[k] for r in rows) / len(rows) for k in range(5)]
-                table.setdefault(w, {})[count] = (mean[0], mean[3])
+                table.setdefault(w, {})[count] = mean
                 print(
                     f"{w.name} {count:>2} lights: novel {mean[0]:.4f} diffuse {mean[1]:.4f} specular {mean[2]:.4f} "
                     f"roughness {mean[3]:.4f} normal {mean[4]:.2f}°",
@@ -149,8 +164,12 @@ def main() -> int:
         print(f"\nnovel-light RMSE | roughness RMSE, by light count\n{'':{name}s} {heads} | {heads}")
         for w, row in table.items():
             novel = " ".join(f"{row[c][0]:.4f}" for c in counts)
-            rough = " ".join(f"{row[c][1]:.4f}" for c in counts)
+            rough = " ".join(f"{row[c][3]:.4f}" for c in counts)
             print(f"{_label(w):{name}s} {novel} | {rough}")
+        print(f"\nmean over the counts\n{'':{name}s}  novel diffuse specular roughness normal°")
+        for w, row in table.items():
+            m = [sum(v[k] for v in row.values()) / len(row) for k in range(5)]
+            print(f"{_label(w):{name}s} {m[0]:.4f}  {m[1]:.4f}   {m[2]:.4f}    {m[3]:.4f}  {m[4]:.2f}")
     return 0
 
 

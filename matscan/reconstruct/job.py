@@ -178,6 +178,25 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
     return warnings
 
 
+def unnamed_subset(capture: Capture) -> str | None:
+    """A warning when the capture's lights are neither all of its rig's nor one of its
+    named subsets (dome24: the paper's Table 4), which the rig's networks were trained on
+    most: at the same count other lights give them measurably worse maps (docs/results.md,
+    "Which lights"). None when they are, or when the rig names no subsets."""
+    rig = capture.rig
+    if rig.per_image_geometry or not rig.subsets:
+        return None
+    lit = {k for k in capture.light_indices if k is not None}
+    if lit == set(range(len(rig.lights))) or any(lit == set(members) for members in rig.subsets.values()):
+        return None
+    names = ", ".join(sorted(rig.subsets, key=lambda k: len(rig.subsets[k])))
+    return (
+        f"lights {', '.join(map(str, sorted(lit)))} are not one of rig {rig.name}'s named subsets ({names}), "
+        "which its networks were trained on most; a named subset of as many lights gives better maps "
+        "(docs/results.md, 'Which lights')"
+    )
+
+
 #: ``--refine auto`` (with the lm solver) chooses by evidence (:func:`choose_by_evidence`)
 #: for captures with at least EVIDENCE_PHOTOS[0] and fewer than EVIDENCE_PHOTOS[1] photos:
 #: there the networks + solver win on some materials and the solver alone on others (the
@@ -322,6 +341,8 @@ def reconstruct_capture(
     if misfit is not None:
         begin = "the any-rig network's maps" if anyrig is not None else "flat maps"
         warnings.append(f"{misfit}; starting refinement from {begin}")
+    elif nets is not None and (unnamed := unnamed_subset(capture)) is not None:
+        warnings.append(unnamed)
     t0 = time.perf_counter()
     if nets is not None:
         start, begun = predict_maps(nets, capture, cfg.tile, cfg.overlap, progress), "networks"
