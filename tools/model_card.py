@@ -179,6 +179,10 @@ def reading(table: dict, statistic: str) -> list[str]:
         ]
     out += [
         "",
+        "Every row is a named subset of the rig (Table 4), which training favours: with "
+        'other lights of the same count the networks do measurably worse (docs/results.md, "Which lights", '
+        "measures how much), and `matscan reconstruct` warns when it reads such a capture.",
+        "",
         "Training continues across sessions; this card is rewritten each time the weights are.",
     ]
     return out
