@@ -388,6 +388,8 @@ def export_weights(
         stored = {k.removeprefix("model."): v for k, v in stored.items() if k.startswith("model.")}
     tensors = {k: v for k, v in stored.items() if not k.startswith("nets.") or k.split(".")[1] in own}
     networks = {m: {**r, "from": str(checkpoint)} for m, r in training_record(meta).items() if m in own}
+    if fill_from is not None and set(own) == set(MAPS):
+        fill_from = None  # nothing to fill: a run of another variant that trained all four networks may snapshot
     if fill_from is not None:
         fill_meta = _metadata(fill_from)
         fill_cfg = _config_of(fill_meta, fill_from)

@@ -235,6 +235,23 @@ def test_snapshots_keep_the_weights_along_the_run_filled_from_init(tmp_path):
         train(TrainConfig(**{**full.__dict__, "snapshot_every": -1}), tmp_path / "n", progress=False)
 
 
+def test_a_variant_run_from_init_keeps_snapshots(tmp_path):
+    # the ablation variants train all four networks; their snapshots need nothing filled from init
+    # (an export that tried to combine them stopped such a run at its first snapshot)
+    cfg = TrainConfig(**{**CFG.__dict__, "val_every": 0, "variant": "no_global_skip"})
+    train(cfg, tmp_path / "a", max_steps=1, progress=False)
+    init = tmp_path / "a" / CHECKPOINT
+    cont = TrainConfig(**{**cfg.__dict__, "init": str(init), "snapshot_every": 1})
+    train(cont, tmp_path / "b", max_steps=2, progress=False)
+    paths = snapshots(tmp_path / "b")
+    assert [p.name for p in paths] == ["step-000001.safetensors", "step-000002.safetensors"]
+    last, meta = load_weights(paths[-1])
+    assert json.loads(meta["train_config"])["variant"] == "no_global_skip"
+    ckpt, _ = load_weights(tmp_path / "b" / CHECKPOINT)
+    for pa, pb in zip(last.parameters(), ckpt.parameters(), strict=True):
+        torch.testing.assert_close(pa, pb.half().float(), rtol=0, atol=0)
+
+
 def test_export_takes_some_of_a_runs_networks_and_fills_the_others(tmp_path):
     full = TrainConfig(**{**CFG.__dict__, "val_every": 0})
     train(full, tmp_path / "b", max_steps=2, progress=False)
