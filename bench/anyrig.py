@@ -21,17 +21,24 @@ Printed per rig and light count: novel-light RMSE (linear, clipped; 16 lights fo
 the 20 test lights for the RTI dome) against the true maps, and the normals' mean error
 in degrees, averaged over the materials.
 
-Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [SIZE]   (default size 128)
+With ``--networks-only``: the networks alone, without the solver or rti-icon (about a
+minute): the dome24 networks, each WEIGHTS given (several any-rig networks side by side,
+same photos), and the photometric-stereo estimate that ``--ps-skip`` networks start from
+(its albedo and normals, specular 0.04, roughness 0.5).
+
+Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
+(``WEIGHTS SIZE`` also works)
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 
 import torch
 
-from matscan.anyrig import load, predict_capture
+from matscan.anyrig import load, photo_input, predict_capture, ps_estimate
 from matscan.capture import Capture
 from matscan.capture.virtual import CameraModel, simulate_images
 from matscan.evaluate import evaluation_lights
@@ -42,7 +49,7 @@ from matscan.reconstruct import ReconstructConfig, reconstruct_capture
 from matscan.reconstruct.job import FLAT_START_PRIOR
 from matscan.reconstruct.networks import predict_maps
 from matscan.reconstruct.solver import solve_maps
-from matscan.render import render_maps
+from matscan.render import render_maps, surface_points
 from matscan.rig import builtin_rig
 from matscan.weights import load_model
 
@@ -82,10 +89,62 @@ def spread(n: int, count: int) -> list[int]:
     return sorted({round((i + 0.5) * n / count - 0.5) for i in range(count)})
 
 
+def photometric_stereo(cap: Capture) -> MapSet:
+    """The ``--ps-skip`` networks' photometric-stereo estimate as maps (specular 0.04,
+    roughness 0.5)."""
+    h, w = cap.size
+    points = surface_points(cap.field_mm, (h, w))
+    xs = [photo_input(cap.linear([i])[0], cap.lights.select([i]), points)[None] for i in range(len(cap.files))]
+    slope, albedo, _ = ps_estimate(lambda: ((x, None) for x in xs))
+    n = torch.cat([slope[0], torch.ones(1, h, w)])
+    return MapSet(
+        diffuse=albedo[0].clamp(0, 1),
+        specular=torch.full((3, h, w), 0.04),
+        roughness=torch.full((1, h, w), 0.5),
+        normal=n / n.norm(dim=0, keepdim=True),
+    )
+
+
+def networks_only(paths: list[str], size: int) -> None:
+    nets, _ = load_model("default")
+    anyrigs = [(path, load(path)) for path in paths]
+    materials = [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
+    dome = builtin_rig("dome24")
+    rti, test = rti_rig(TRAIN), rti_rig(TEST)
+    rows: dict[tuple, list[tuple[float, float]]] = {}
+    t0 = time.perf_counter()
+    for i, maps in enumerate(materials):
+        cases = [("dome24", c, dome, dome.subset(c), evaluation_lights(dome)) for c in ("1", "2", "3", "6")]
+        cases += [("RTI dome (unseen)", str(c), rti, spread(len(TRAIN), c), test.light_set()) for c in (1, 2, 3, 6, 12)]
+        for rig_name, count, rig, indices, lights in cases:
+            cap = capture_of(maps, rig, indices, seed=i)
+            got = [("photometric stereo", photometric_stereo(cap))]
+            if rig_name == "dome24":
+                got.append(("dome24 networks", predict_maps(nets, cap)))
+            got += [(path, MapSet(**predict_capture(net, cap))) for path, net in anyrigs]
+            for method, pred in got:
+                rows.setdefault((rig_name, count, method), []).append(scores(pred, maps, lights, rig.field_mm))
+    print(f"{'rig':20s} {'lights':>6s} {'novel RMSE':>10s} {'normal °':>9s}  method")
+    for (rig, count, method), vals in rows.items():
+        rmse = sum(v[0] for v in vals) / len(vals)
+        deg = sum(v[1] for v in vals) / len(vals)
+        print(f"{rig:20s} {count:>6s} {rmse:10.4f} {deg:9.2f}  {method}")
+    print(f"{len(materials)} materials at {size}², {time.perf_counter() - t0:.0f} s")
+
+
 def main() -> None:
     torch.set_num_threads(2)
-    weights = sys.argv[1]
-    size = int(sys.argv[2]) if len(sys.argv) > 2 else 128
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("weights", nargs="+")
+    parser.add_argument("--size", type=int, default=128)
+    parser.add_argument("--networks-only", dest="networks_only", action="store_true")
+    args = parser.parse_args()
+    if len(args.weights) > 1 and args.weights[-1].isdigit():  # the older form: WEIGHTS SIZE
+        args.size = int(args.weights.pop())
+    if args.networks_only:
+        networks_only(args.weights, args.size)
+        return
+    weights, size = args.weights[0], args.size
     anyrig = load(weights)
     nets, _ = load_model("default")
     materials = [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]

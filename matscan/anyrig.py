@@ -14,6 +14,12 @@ mean over the photos at each scale (:func:`pool`) feed a U-Net decoder that give
 four maps. Training draws a rig at random for every sample (:func:`random_lights`) and
 renders procedural materials through it with the project's renderer and camera model.
 
+With ``AnyRigConfig(ps_skip=True)`` (``train-anyrig --ps-skip``) the decoder also gets
+what the photos say about each pixel directly: a per-pixel Lambertian photometric-stereo
+solve (:func:`ps_estimate`: ridge-regularised, reweighted against highlights and shadows,
+streamed over photos), and predicts the normals and albedo as corrections to it, the
+paper's global skip with a physical estimate in place of the input photo.
+
 ``matscan train-anyrig --out RUN`` trains it (resumable; CUDA when there is one);
 weights are safetensors. This is a first, small version: docs/rti.md says what it
 scores.
@@ -25,6 +31,7 @@ import csv
 import json
 import math
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -39,6 +46,12 @@ from matscan.rig import LightSet
 
 IN_CHANNELS = 10
 MULTIPLE = 4  # image sizes are padded to a multiple of this
+PS_CHANNELS = 7  # the photometric-stereo skip's channels (:func:`ps_estimate`)
+PS_RIDGE = 0.01  # pull of the per-pixel solve toward a flat normal, in photos' worth
+PS_SHADOW = 0.01  # a value this dark counts half (attached and cast shadows)
+PS_RESIDUAL = 0.1  # residuals this far (× albedo) from the last round's fit count half
+PS_ROUNDS = 3  # one least-squares solve, then two reweighted by its residuals
+PS_MAX_SLOPE = 3.0  # the skip's normals are kept within atan 3 = 72° of the vertical
 
 
 def photo_input(photo: Tensor, lights: LightSet, points: Tensor) -> Tensor:
@@ -59,6 +72,84 @@ def photo_input(photo: Tensor, lights: LightSet, points: Tensor) -> Tensor:
     return torch.cat([log, l, v, falloff]).to(photo.dtype)
 
 
+def ps_terms(x: Tensor, b: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One photo's part of the per-pixel photometric-stereo solve, from its inputs
+    (B, ≥6, H, W) (:func:`photo_input`'s first 6 channels): for a Lambertian pixel of
+    albedo ρ and normal n, y = ratio · l_z = ρ (n · l), linear in b = ρ n. Dark values
+    (shadows) count little; given the previous round's solve ``b`` (B, H, W, 3, 3), so
+    do values far from its prediction (highlights, cast shadows): a Cauchy weight of
+    the residual on a scale of ``PS_RESIDUAL`` of the pixel's albedo. Returns the weighted
+    normal matrix w l lᵀ (B, H, W, 3, 3), right-hand sides w l yᵀ (B, H, W, 3, 3: one
+    column per colour channel), the weight w (B, 1, H, W) and w · ratio (B, 3, H, W);
+    sums over photos of these are all :func:`ps_solve` needs."""
+    ratio = torch.expm1(x[:, :3].float().clamp_min(0) * math.log1p(LOG_SCALE)) / LOG_SCALE
+    l = x[:, 3:6].float()
+    y = ratio * l[:, 2:3]
+    grey = y.mean(1, keepdim=True).clamp_min(0)
+    w = grey / (grey + PS_SHADOW)
+    lp = l.permute(0, 2, 3, 1)  # (B, H, W, 3)
+    if b is not None:
+        bg = b.mean(-1)  # (B, H, W, 3)
+        residual = grey[:, 0] - (lp * bg).sum(-1)
+        scale = PS_RESIDUAL * bg.norm(dim=-1) + PS_SHADOW
+        w = w / (1 + (residual / scale).square())[:, None]
+    wl = w.permute(0, 2, 3, 1) * lp
+    a = wl[..., :, None] * lp[..., None, :]
+    rhs = wl[..., :, None] * y.permute(0, 2, 3, 1)[..., None, :]
+    return a, rhs, w, w * ratio
+
+
+def ps_solve(a: Tensor, rhs: Tensor, w: Tensor, wratio: Tensor) -> Tensor:
+    """b = ρ n per pixel and colour channel (B, H, W, 3, 3) from summed :func:`ps_terms`: a
+    ridge solve pulled toward a flat pixel of the photos' mean ratio (``PS_RIDGE``)."""
+    eye = torch.eye(3, dtype=a.dtype, device=a.device)
+    flat = (wratio / w.clamp_min(1e-6)).permute(0, 2, 3, 1)  # (B, H, W, 3)
+    prior = torch.zeros_like(rhs)
+    prior[..., 2, :] = flat
+    return torch.linalg.solve(a + PS_RIDGE * eye, rhs + PS_RIDGE * prior)
+
+
+def ps_estimate(photos: Callable[[], Iterable[tuple[Tensor, Tensor | None]]]) -> tuple[Tensor, Tensor, Tensor]:
+    """The photometric-stereo estimate: ``PS_ROUNDS`` rounds of :func:`ps_solve`, each
+    reweighting by the last (iteratively reweighted least squares). ``photos()`` yields
+    (inputs (B, ≥6, H, W), presence (B,) or None) once per photo, afresh each round.
+
+    Returns the normal's slopes (B, 2, H, W: n_x/n_z, n_y/n_z, within ``PS_MAX_SLOPE``; the
+    grey channel's direction), the albedo (B, 3, H, W: each channel's b · n, in [0, 2]) and
+    the ``PS_CHANNELS`` network inputs: slopes / PS_MAX_SLOPE, log-encoded albedo, the
+    solve's conditioning (smallest eigenvalue of the normal matrix, log-encoded) and the
+    photos' weight (log-encoded)."""
+    b = None
+    for _ in range(PS_ROUNDS):
+        sums: list[Tensor] | None = None
+        for x, present in photos():
+            terms = ps_terms(x, b)
+            if present is not None:
+                keep = [present.view(-1, *[1] * (t.dim() - 1)) > 0 for t in terms]
+                terms = tuple(torch.where(k, t, torch.zeros_like(t)) for k, t in zip(keep, terms, strict=True))
+            sums = list(terms) if sums is None else [s + t for s, t in zip(sums, terms, strict=True)]
+        if sums is None:
+            raise MatscanError("anyrig: no photos")
+        b = ps_solve(*sums)
+    a, _, w, _ = sums
+    grey = b.mean(-1)
+    n = grey / grey.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    albedo = (b * n[..., None]).sum(-2).clamp(0, 2).permute(0, 3, 1, 2)
+    slope = (n[..., :2] / n[..., 2:].clamp_min(1 / PS_MAX_SLOPE)).clamp(-PS_MAX_SLOPE, PS_MAX_SLOPE)
+    slope = slope.permute(0, 3, 1, 2)
+    low = torch.linalg.eigvalsh(a)[..., 0].clamp_min(0)[:, None]  # (B, 1, H, W)
+    code = torch.cat(
+        [
+            slope / PS_MAX_SLOPE,
+            torch.log1p(albedo * LOG_SCALE) / math.log1p(LOG_SCALE),
+            torch.log1p(10 * low) / math.log1p(10),
+            torch.log1p(w) / math.log1p(12),
+        ],
+        1,
+    )
+    return slope, albedo, code
+
+
 def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(
         nn.Conv2d(cin, cout, 3, stride, 1), nn.LeakyReLU(0.2), nn.Conv2d(cout, cout, 3, 1, 1), nn.LeakyReLU(0.2)
@@ -77,6 +168,9 @@ def pool(features: Tensor, present: Tensor) -> Tensor:
 @dataclass(frozen=True)
 class AnyRigConfig:
     width: int = 32  # channels at full resolution; ×2 and ×4 below
+    # a per-pixel photometric-stereo estimate (:func:`ps_estimate`) goes to the decoder's
+    # last stage, and the normals and albedo are predicted as corrections to it
+    ps_skip: bool = False
 
 
 class AnyRigNet(nn.Module):
@@ -93,23 +187,33 @@ class AnyRigNet(nn.Module):
         self.up2 = nn.ConvTranspose2d(4 * w, 2 * w, 2, 2)
         self.dec2 = _block(2 * w + 4 * w, 2 * w)
         self.up1 = nn.ConvTranspose2d(2 * w, w, 2, 2)
-        self.dec1 = _block(w + 2 * w, w)
+        self.dec1 = _block(w + 2 * w + (PS_CHANNELS if cfg.ps_skip else 0), w)
         self.head = nn.Conv2d(w, sum(OUT_CHANNELS.values()), 1)
+        if cfg.ps_skip:  # start from the photometric-stereo estimate itself
+            with torch.no_grad():
+                self.head.weight.mul_(0.1)
+                self.head.bias.zero_()
 
     def encode(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         f1 = self.enc1(x)
         f2 = self.enc2(f1)
         return f1, f2, self.enc3(f2)
 
-    def decode(self, p1: Tensor, p2: Tensor, p3: Tensor) -> dict[str, Tensor]:
+    def decode(self, p1: Tensor, p2: Tensor, p3: Tensor, ps: tuple[Tensor, ...] | None = None) -> dict[str, Tensor]:
         y = self.mid(p3)
         y = self.dec2(torch.cat([self.up2(y), p2], 1))
-        y = self.dec1(torch.cat([self.up1(y), p1], 1))
+        y = self.dec1(torch.cat([self.up1(y), p1, *([ps[2]] if ps is not None else [])], 1))
         out = self.head(y)
         d, s, r, n = torch.split(out, [3, 3, 1, 3], 1)
-        normal = torch.cat([torch.tanh(n[:, :2]) * 2, F.softplus(n[:, 2:]) + 0.2], 1)
+        if ps is None:
+            normal = torch.cat([torch.tanh(n[:, :2]) * 2, F.softplus(n[:, 2:]) + 0.2], 1)
+            diffuse = torch.sigmoid(d)
+        else:
+            slope, albedo, _ = ps
+            normal = torch.cat([slope + 2 * torch.tanh(n[:, :2]), torch.ones_like(n[:, 2:])], 1)
+            diffuse = torch.sigmoid(torch.logit(albedo.clamp(0.02, 0.98)) + d)
         return {
-            "diffuse": torch.sigmoid(d),
+            "diffuse": diffuse,
             "specular": torch.sigmoid(s - 2),
             "roughness": torch.sigmoid(r),
             "normal": normal / normal.norm(dim=1, keepdim=True),
@@ -120,9 +224,13 @@ class AnyRigNet(nn.Module):
         b, k, c, h, w = x.shape
         if h % MULTIPLE or w % MULTIPLE:
             raise MatscanError(f"anyrig: the size {h}×{w} is not a multiple of {MULTIPLE}")
-        feats = self.encode(x.reshape(b * k, c, h, w))
+        flat = x.reshape(b * k, c, h, w)
+        feats = self.encode(flat)
         pooled = [pool(f.reshape(b, k, *f.shape[1:]), present) for f in feats]
-        return self.decode(*pooled)
+        ps = None
+        if self.cfg.ps_skip:
+            ps = ps_estimate(lambda: ((x[:, i], present[:, i]) for i in range(k)))
+        return self.decode(*pooled, ps=ps)
 
     @torch.no_grad()
     def predict(self, inputs) -> dict[str, Tensor]:
@@ -130,17 +238,21 @@ class AnyRigNet(nn.Module):
         pooling runs as it goes, so memory does not grow with the number of photos."""
         tops: list[Tensor | None] = [None, None, None]
         sums: list[Tensor | None] = [None, None, None]
+        kept: list[Tensor] = []  # what the photometric-stereo skip needs: 6 channels a photo
         count = 0
         for x in inputs:
             feats = self.encode(x[None])
             for i, f in enumerate(feats):
                 tops[i] = f if tops[i] is None else torch.maximum(tops[i], f)
                 sums[i] = f if sums[i] is None else sums[i] + f
+            if self.cfg.ps_skip:
+                kept.append(x[None, :6].clone())
             count += 1
         if count == 0:
             raise MatscanError("anyrig: no photos")
         pooled = [torch.cat([t, s / count], 1) for t, s in zip(tops, sums, strict=True)]
-        return {k: v[0] for k, v in self.decode(*pooled).items()}
+        ps = ps_estimate(lambda: ((t, None) for t in kept)) if self.cfg.ps_skip else None
+        return {k: v[0] for k, v in self.decode(*pooled, ps=ps).items()}
 
 
 # --- training data: a random rig for every sample ---------------------------------------
@@ -254,9 +366,12 @@ def train(
     minutes: float = 10.0,
     max_steps: int | None = None,
     progress: bool = False,
+    net_cfg: AnyRigConfig | None = None,
 ) -> dict:
     """Train (or resume, from ``out/checkpoint.safetensors``) for ``minutes``; writes the
-    checkpoint (weights and step; Adam restarts on resume) and ``log.csv``."""
+    checkpoint (weights and step; Adam restarts on resume) and ``log.csv``. A new run's
+    network is ``net_cfg`` (default :class:`AnyRigConfig`); a resumed run keeps the
+    checkpoint's, and a ``net_cfg`` that differs from it is an error."""
     from safetensors.torch import load_file, save_file
     from tqdm import tqdm
 
@@ -267,12 +382,18 @@ def train(
         if cfg.device == "auto" and torch.cuda.is_available()
         else ("cpu" if cfg.device == "auto" else cfg.device)
     )
-    net = AnyRigNet().to(device)
     step = 0
     ckpt = out / CHECKPOINT
+    state = None
     if ckpt.exists():
         state = load_file(ckpt)
         step = int(state.pop("step").item())
+        found = config_of(state)
+        if net_cfg is not None and net_cfg != found:
+            raise MatscanError(f"{ckpt}: the run's network is {found}, not {net_cfg}; use a new run folder")
+        net_cfg = found
+    net = AnyRigNet(net_cfg or AnyRigConfig()).to(device)
+    if state is not None:
         net.load_state_dict(state)
     (out / "config.json").write_text(json.dumps({"train": asdict(cfg), "net": asdict(net.cfg)}, indent=1))
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
@@ -312,6 +433,16 @@ def train(
     return {"steps": step, "checkpoint": str(ckpt)}
 
 
+def config_of(state: dict[str, Tensor]) -> AnyRigConfig:
+    """The :class:`AnyRigConfig` a state dict was made with, from its tensors' shapes."""
+    enc = state.get("enc1.0.weight")
+    dec = state.get("dec1.0.weight")
+    if enc is None or dec is None:
+        return AnyRigConfig()  # load_state_dict names what is missing
+    width = int(enc.shape[0])
+    return AnyRigConfig(width=width, ps_skip=int(dec.shape[1]) == 3 * width + PS_CHANNELS)
+
+
 def load(path: str | Path) -> AnyRigNet:
     """An AnyRigNet from a checkpoint or weights file; a file that is not one is a
     one-line error naming it."""
@@ -325,7 +456,7 @@ def load(path: str | Path) -> AnyRigNet:
     except (SafetensorError, OSError, ValueError) as exc:
         raise input_error(path, f"is not a readable safetensors file ({str(exc).splitlines()[0][:120]})") from None
     state.pop("step", None)
-    net = AnyRigNet()
+    net = AnyRigNet(config_of(state))
     try:
         net.load_state_dict(state)
     except RuntimeError:

@@ -539,10 +539,11 @@ def cmd_batch(args: argparse.Namespace) -> str:
 
 
 def cmd_train_anyrig(args: argparse.Namespace) -> str:
-    from matscan.anyrig import TrainAnyRig, train
+    from matscan.anyrig import AnyRigConfig, TrainAnyRig, train
 
     cfg = TrainAnyRig(size=args.size, batch=args.batch, max_photos=args.max_photos, seed=args.seed, device=args.device)
-    result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True)
+    net_cfg = AnyRigConfig(ps_skip=True) if args.ps_skip else None
+    result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
     return f"train-anyrig: {result['steps']} steps in all; checkpoint {result['checkpoint']}"
 
 
@@ -985,6 +986,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-photos", dest="max_photos", type=positive_int, default=12, help="most photos a sample")
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--device", default="auto", help="auto (CUDA when there is one), cpu or cuda")
+    p.add_argument(
+        "--ps-skip",
+        dest="ps_skip",
+        action="store_true",
+        help="a new run's network gets the per-pixel photometric-stereo estimate and corrects it (docs/rti.md)",
+    )
     p.set_defaults(func=cmd_train_anyrig)
 
     p = sub.add_parser("sheet", help="contact sheet PNG of a capture or map set folder")
