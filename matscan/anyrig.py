@@ -14,7 +14,8 @@ mean over the photos at each scale (:func:`pool`) feed a U-Net decoder that give
 four maps. Training draws a rig at random for every sample (:func:`random_lights`) and
 renders procedural materials through it with the project's renderer and camera model.
 
-With ``AnyRigConfig(ps_skip=True)`` (``train-anyrig --ps-skip``) the decoder also gets
+With ``AnyRigConfig(ps_skip=True)`` (the default; ``train-anyrig --no-ps-skip`` for the
+first version without it) the decoder also gets
 what the photos say about each pixel directly: a per-pixel Lambertian photometric-stereo
 solve (:func:`ps_estimate`: ridge-regularised, reweighted against highlights and shadows,
 streamed over photos), and predicts the normals and albedo as corrections to it, the
@@ -169,8 +170,9 @@ def pool(features: Tensor, present: Tensor) -> Tensor:
 class AnyRigConfig:
     width: int = 32  # channels at full resolution; ×2 and ×4 below
     # a per-pixel photometric-stereo estimate (:func:`ps_estimate`) goes to the decoder's
-    # last stage, and the normals and albedo are predicted as corrections to it
-    ps_skip: bool = False
+    # last stage, and the normals and albedo are predicted as corrections to it (off:
+    # the first version's network, runs/anyrig-cpu)
+    ps_skip: bool = True
 
 
 class AnyRigNet(nn.Module):
@@ -235,7 +237,9 @@ class AnyRigNet(nn.Module):
     @torch.no_grad()
     def predict(self, inputs) -> dict[str, Tensor]:
         """Maps (C, H, W) from an iterable of (10, H, W) inputs, one photo at a time: the
-        pooling runs as it goes, so memory does not grow with the number of photos."""
+        pooling runs as it goes, so the features' memory does not grow with the number of
+        photos (the photometric-stereo skip keeps 6 channels a photo for its reweighted
+        rounds: 72 photos of a 512² tile, 450 MB)."""
         tops: list[Tensor | None] = [None, None, None]
         sums: list[Tensor | None] = [None, None, None]
         kept: list[Tensor] = []  # what the photometric-stereo skip needs: 6 channels a photo

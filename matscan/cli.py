@@ -542,7 +542,7 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
     from matscan.anyrig import AnyRigConfig, TrainAnyRig, train
 
     cfg = TrainAnyRig(size=args.size, batch=args.batch, max_photos=args.max_photos, seed=args.seed, device=args.device)
-    net_cfg = AnyRigConfig(ps_skip=True) if args.ps_skip else None
+    net_cfg = None if args.ps_skip is None else AnyRigConfig(ps_skip=args.ps_skip)
     result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
     return f"train-anyrig: {result['steps']} steps in all; checkpoint {result['checkpoint']}"
 
@@ -989,8 +989,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--ps-skip",
         dest="ps_skip",
-        action="store_true",
-        help="a new run's network gets the per-pixel photometric-stereo estimate and corrects it (docs/rti.md)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="whether a new run's network gets the per-pixel photometric-stereo estimate and corrects it "
+        "(default: yes; a resumed run keeps its own; docs/rti.md)",
     )
     p.set_defaults(func=cmd_train_anyrig)
 

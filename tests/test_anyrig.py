@@ -171,8 +171,15 @@ def test_a_run_keeps_its_network_and_load_knows_it(tmp_path):
     assert load(tmp_path / "run" / "checkpoint.safetensors").cfg == AnyRigConfig(ps_skip=True)
     assert train(tmp_path / "run", cfg, max_steps=3)["steps"] == 3  # resumes with the checkpoint's network
     with pytest.raises(MatscanError, match="use a new run folder"):
-        train(tmp_path / "run", cfg, max_steps=4, net_cfg=AnyRigConfig())
-    assert load(_weights(tmp_path)).cfg == AnyRigConfig()
+        train(tmp_path / "run", cfg, max_steps=4, net_cfg=AnyRigConfig(ps_skip=False))
+    assert load(_weights(tmp_path)).cfg == AnyRigConfig(ps_skip=False)
+    from matscan.cli import main
+
+    small = ["--size", "16", "--batch", "1", "--max-photos", "3"]
+    assert main(["train-anyrig", "--out", str(tmp_path / "plain"), "--max-steps", "1", "--no-ps-skip", *small]) == 0
+    assert main(["train-anyrig", "--out", str(tmp_path / "plain"), "--max-steps", "2", *small]) == 0  # keeps it
+    assert load(tmp_path / "plain" / "checkpoint.safetensors").cfg == AnyRigConfig(ps_skip=False)
+    assert main(["train-anyrig", "--out", str(tmp_path / "plain"), "--max-steps", "3", "--ps-skip", *small]) != 0
 
 
 @pytest.mark.parametrize("ps_skip", [False, True])
