@@ -230,7 +230,7 @@ def test_snapshots_keep_the_weights_along_the_run_filled_from_init(tmp_path):
             torch.testing.assert_close(pa, pb.half().float(), rtol=0, atol=0)
     first, _ = load_weights(paths[0])
     pairs = zip(first.nets["roughness"].parameters(), last.nets["roughness"].parameters(), strict=True)
-    assert max(float((a - b).abs().max()) for a, b in pairs) > 0  # the network trained between them
+    assert max(float((a - b).detach().abs().max()) for a, b in pairs) > 0  # the network trained between them
     with pytest.raises(MatscanError, match="snapshot_every: -1"):
         train(TrainConfig(**{**full.__dict__, "snapshot_every": -1}), tmp_path / "n", progress=False)
 
