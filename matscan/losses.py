@@ -97,18 +97,28 @@ def rendering_loss(
     name: str | tuple[str, ...],
     lights: LightSet,
     points: Tensor,
+    target: Tensor | None = None,
 ) -> Tensor:
     """Σ_k L1 in log space between renderings with the predicted ``name`` map (or
     maps, for the joint loss; the rest from ``truth``) and the ground truth, under
-    ``lights``."""
+    ``lights``. ``target``: the ground truth's rendering under them (:func:`truth_rendering`),
+    where several terms of a step share it."""
     maps = dict(truth)
     for n in (name,) if isinstance(name, str) else name:
         maps[n] = pred[n]
-    a = render(maps["diffuse"], maps["specular"], maps["roughness"], maps["normal"], lights, points)
-    with torch.no_grad():
-        b = render(truth["diffuse"], truth["specular"], truth["roughness"], truth["normal"], lights, points)
+    # one chunk: with gradients kept, chunks save no memory, and each costs a kernel launch per operation
+    whole = maps["diffuse"].shape[0] * lights.position.shape[-2] * maps["diffuse"].shape[-2] * maps["diffuse"].shape[-1]
+    a = render(maps["diffuse"], maps["specular"], maps["roughness"], maps["normal"], lights, points, chunk=whole)
+    b = truth_rendering(truth, lights, points) if target is None else target
     diff = (torch.log(LOG_EPS + a.clamp_min(0)) - torch.log(LOG_EPS + b)).abs()
     return diff.mean(dim=(0, 2, 3, 4)).sum()  # mean per rendering, summed over the K renderings
+
+
+def truth_rendering(truth: dict[str, Tensor], lights: LightSet, points: Tensor) -> Tensor:
+    """The ground-truth maps rendered under the loss's novel lights (no gradient): the
+    target of every rendering term of a step."""
+    with torch.no_grad():
+        return render(truth["diffuse"], truth["specular"], truth["roughness"], truth["normal"], lights, points)
 
 
 def map_loss(
@@ -119,12 +129,14 @@ def map_loss(
     points: Tensor | None,
     lambda_map: float = LAMBDA_MAP,
     lambda_render: float = LAMBDA_RENDER,
+    target: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
-    """The loss of one map network, and its terms (for logging)."""
+    """The loss of one map network, and its terms (for logging); ``target`` as for
+    :func:`rendering_loss`."""
     terms = {"l1": l1(pred[name], truth[name])}
     total = lambda_map * terms["l1"]
     if lights is not None and lambda_render > 0:
-        terms["render"] = rendering_loss(pred, truth, name, lights, points)
+        terms["render"] = rendering_loss(pred, truth, name, lights, points, target)
         total = total + lambda_render * terms["render"]
     if name == "diffuse":
         terms["ssim"] = 1 - ssim(pred[name].clamp(0, 1), truth[name])

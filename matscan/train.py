@@ -79,7 +79,7 @@ from matscan.jsonfile import (
     loads_text,
     short_repr,
 )
-from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights, rendering_loss
+from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights, rendering_loss, truth_rendering
 from matscan.nets import MAPS, PRESETS, VARIANTS, MapNets, NetConfig, lights_to, network_input, preset
 from matscan.render import surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
@@ -481,6 +481,53 @@ def validate(nets: MapNets, samples: list[dict[str, Tensor]], rig: Rig, batch: i
 # --- the loop ------------------------------------------------------------------------
 
 
+def loss_lights(
+    b: dict[str, Tensor], cfg: TrainConfig, rig: Rig, device: torch.device
+) -> tuple[LightSet, Tensor, Tensor] | None:
+    """The novel lights, surface points and ground-truth rendering of a batch's rendering
+    loss, on ``device`` (None where the config has no rendering term). They depend on the
+    samples alone, so every network's term shares them, and so do networks trained side
+    by side on one batch."""
+    if not (cfg.lambda_render > 0 and cfg.render_lights > 0):
+        return None
+    lights = lights_to(sample_lights(b["index"], cfg, rig), device)
+    points = torch.stack(
+        [
+            surface_points(rig.field_mm, (cfg.crop, cfg.crop), tuple(o.tolist()), tuple(f.tolist()))
+            for o, f in zip(b["offset"], b["full_size"], strict=True)
+        ]
+    ).to(device)
+    return lights, points, truth_rendering({m: b[m] for m in MAPS}, lights, points)
+
+
+def step_loss(
+    out: dict[str, Tensor],
+    b: dict[str, Tensor],
+    cfg: TrainConfig,
+    rig: Rig,
+    render: tuple[LightSet, Tensor, Tensor] | None,
+) -> tuple[Tensor, dict[str, float]]:
+    """One step's loss for the networks' outputs ``out`` on batch ``b``: each trained map's
+    own loss, with its own rendering term or one joint term for all (``cfg.render_with``),
+    under ``render`` (:func:`loss_lights`). Returns the total and its terms, for the log."""
+    truth = {m: b[m] for m in MAPS}
+    lights, points, target = render if render is not None else (None, None, None)
+    total: Tensor | float = 0.0
+    terms: dict[str, float] = {}
+    joint = cfg.render_with == "joint"
+    for m in cfg.maps:
+        own = None if joint else lights  # joint: no per-network rendering term
+        loss, parts = map_loss(m, out, truth, own, points, cfg.lambda_map, cfg.lambda_render, target)
+        total = total + loss
+        terms[f"{m}"] = float(loss.detach())
+        terms.update({f"{m}_{k}": v for k, v in parts.items()})
+    if joint and lights is not None:
+        r = rendering_loss(out, truth, tuple(cfg.maps), lights, points, target)
+        total = total + cfg.lambda_render * r
+        terms["joint_render"] = float(r.detach())
+    return total, terms  # type: ignore[return-value]
+
+
 def _dist_info() -> tuple[int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
@@ -619,30 +666,7 @@ def train(
         while keep_going():
             b = to_device(next(batches), device)
             x = network_input(b["inputs"], b["present"], b["offset"], b["full_size"], rig)
-            out = model(x)
-            truth = {m: b[m] for m in MAPS}
-            lights = points = None
-            if cfg.lambda_render > 0 and cfg.render_lights > 0:
-                lights = lights_to(sample_lights(b["index"], cfg, rig), device)
-                points = torch.stack(
-                    [
-                        surface_points(rig.field_mm, (cfg.crop, cfg.crop), tuple(o.tolist()), tuple(f.tolist()))
-                        for o, f in zip(b["offset"], b["full_size"], strict=True)
-                    ]
-                ).to(device)
-            total = 0.0
-            terms: dict[str, float] = {}
-            joint = cfg.render_with == "joint"
-            for m in cfg.maps:
-                own = None if joint else lights  # joint: no per-network rendering term
-                loss, parts = map_loss(m, out, truth, own, points, cfg.lambda_map, cfg.lambda_render)
-                total = total + loss
-                terms[f"{m}"] = float(loss.detach())
-                terms.update({f"{m}_{k}": v for k, v in parts.items()})
-            if joint and lights is not None:
-                r = rendering_loss(out, truth, tuple(cfg.maps), lights, points)
-                total = total + cfg.lambda_render * r
-                terms["joint_render"] = float(r.detach())
+            total, terms = step_loss(model(x), b, cfg, rig, loss_lights(b, cfg, rig, device))
             opt.zero_grad(set_to_none=True)
             total.backward()
             for params in _groups(nets).values():

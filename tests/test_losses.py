@@ -7,7 +7,17 @@ import math
 import pytest
 import torch
 
-from matscan.losses import LAMBDA_RENDER, cosine_loss, l1, map_loss, novel_lights, rendering_loss, ssim
+from matscan.losses import (
+    LAMBDA_RENDER,
+    cosine_loss,
+    l1,
+    map_loss,
+    novel_lights,
+    rendering_loss,
+    ssim,
+    truth_rendering,
+)
+from matscan.render import render, surface_points
 from matscan.rig import LightSet
 
 
@@ -86,3 +96,35 @@ def test_novel_lights_lie_above_the_sample():
     assert (d >= 225 - 1e-3).all() and (d <= 450 + 1e-3).all()
     elevation = torch.rad2deg(torch.asin(ls.position[..., 2] / d))
     assert elevation.min() >= 10 - 1e-4
+
+
+def test_rendering_loss_in_one_chunk_with_a_shared_target_equals_the_chunked_sum():
+    # the loss renders in one chunk and may take the truth's rendering from the caller:
+    # value and gradient equal the definition evaluated with the renderer's small chunks
+    g = torch.Generator().manual_seed(3)
+    b, size = 3, 12
+    truth = {
+        "diffuse": torch.rand(b, 3, size, size, generator=g),
+        "specular": 0.04 + 0.5 * torch.rand(b, 3, size, size, generator=g),
+        "roughness": 0.1 + 0.8 * torch.rand(b, 1, size, size, generator=g),
+        "normal": torch.nn.functional.normalize(
+            torch.randn(b, 3, size, size, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1), dim=1
+        ),
+    }
+    lights = novel_lights(b, 5, 225.0, (0.0, 0.0, 225.0), g)
+    points = surface_points((20.0, 20.0), (size, size)).expand(b, size, size, 3)
+    rough = (0.1 + 0.8 * torch.rand(b, 1, size, size, generator=g)).requires_grad_()
+    loss = rendering_loss(
+        {"roughness": rough}, truth, "roughness", lights, points, truth_rendering(truth, lights, points)
+    )
+    (grad,) = torch.autograd.grad(loss, rough)
+
+    ref_rough = rough.detach().clone().requires_grad_()
+    a = render(truth["diffuse"], truth["specular"], ref_rough, truth["normal"], lights, points, chunk=4 * b * 5)
+    with torch.no_grad():
+        t = render(truth["diffuse"], truth["specular"], truth["roughness"], truth["normal"], lights, points, chunk=7)
+    eps = 0.01
+    ref = sum(((torch.log(eps + a[:, k].clamp_min(0)) - torch.log(eps + t[:, k])).abs().mean()) for k in range(5))
+    (ref_grad,) = torch.autograd.grad(ref, ref_rough)
+    assert float(loss.detach()) == pytest.approx(float(ref.detach()), rel=1e-6)
+    torch.testing.assert_close(grad, ref_grad, rtol=1e-5, atol=1e-9)
