@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import math
 import os
@@ -30,6 +31,8 @@ from matscan.train import (
     train,
     training_record,
 )
+
+ROOT = Path(__file__).resolve().parent.parent
 
 CFG = TrainConfig(
     preset="tiny", crop=32, batch=2, val_every=4, val_count=2, workers=0, render_lights=2, steps=6, log_every=1
@@ -376,3 +379,31 @@ def test_a_run_on_cuda_matches_the_cpu_and_resumes_there(tmp_path):
     # the GPU run goes on on the CPU
     res = train(TrainConfig(**{**cfg.__dict__, "device": "cpu"}), tmp_path / "gpu", max_steps=1, progress=False)
     assert res["step"] == 3
+
+
+def test_variants_trained_side_by_side_equal_their_own_runs(tmp_path):
+    # tools/train_ablation.py shares batches between the variants of a seed: each run's
+    # weights must still be what train() gives for its config alone
+    spec = importlib.util.spec_from_file_location("train_ablation", ROOT / "tools" / "train_ablation.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    base = TrainConfig(**{**CFG.__dict__, "steps": 3, "val_every": 2, "log_every": 1})
+    configs = [
+        TrainConfig(**{**base.__dict__, "variant": "four", "seed": 0}),
+        TrainConfig(**{**base.__dict__, "variant": "no_global_skip", "seed": 0}),
+        TrainConfig(**{**base.__dict__, "variant": "four", "seed": 1}),
+    ]
+    last = tool.train_together(configs, tmp_path / "together", minutes=10, progress=False)
+    assert sorted(last) == ["four-s0", "four-s1", "no_global_skip-s0"]
+    for cfg in (configs[0], configs[2]):
+        alone = tmp_path / f"alone-{cfg.seed}"
+        train(cfg, alone, progress=False)
+        together = tmp_path / "together" / f"four-s{cfg.seed}"
+        for pa, pb in zip(_params(alone / CHECKPOINT), _params(together / CHECKPOINT), strict=True):
+            torch.testing.assert_close(pa, pb, rtol=0, atol=0)
+        # train() validates every val_every steps; the tool also at its last step
+        assert (together / "val.csv").read_text().startswith((alone / "val.csv").read_text())
+    four0, four1 = (_params(tmp_path / "together" / f"four-s{s}" / CHECKPOINT) for s in (0, 1))
+    assert any(not torch.equal(a, b) for a, b in zip(four0, four1, strict=True))  # seeds differ
+    weights, meta = load_weights(tmp_path / "together" / "no_global_skip-s0.safetensors")
+    assert meta["step"] == "3" and weights.variant == "no_global_skip"

@@ -13,6 +13,12 @@ so only floating-point summation order (thread counts) separates them.
 
 Run: .venv/bin/python tools/ablation.py runs/ablation/{four,one_encoder,global_track,no_global_skip}
      [--reference runs/dome24-cpu-stage1]
+
+With ``--scores DIR`` it tabulates instead the scores that ``tools/nets_unlike.py`` wrote
+for several seeds of each variant (``DIR/VARIANT-sSEED.unlike.txt`` and ``.procedural.txt``,
+as ``runs/ablation-gpu/lease.sh score`` makes them): per set and variant, each score's mean
+over the light counts, averaged over the seeds, with half the seeds' range beside it (the
+noise a difference between variants must exceed).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import re
 from pathlib import Path
 
 import torch
@@ -33,11 +40,51 @@ def read_csv(path: Path) -> list[dict[str, str]]:
     return list(csv.DictReader(path.open())) if path.is_file() else []
 
 
+#: One line of ``tools/nets_unlike.py``'s output: a light count's means over the map sets.
+SCORE_LINE = re.compile(
+    r"(\d+) lights: novel ([\d.]+) diffuse ([\d.]+) specular ([\d.]+) roughness ([\d.]+) normal ([\d.]+)°"
+)
+SCORES = ("novel", "diffuse", "specular", "roughness", "normal °")
+
+
+def seed_table(folder: Path) -> str:
+    """Markdown: per set and variant, the scores' means over the counts, mean ± half range over seeds."""
+    found: dict[tuple[str, str], dict[str, list[float]]] = {}
+    for path in sorted(folder.glob("*-s*.*.txt")):
+        run, kind = path.name.split(".")[:2]
+        variant, seed = run.rsplit("-s", 1)
+        rows = [[float(v) for v in m.groups()[1:]] for m in map(SCORE_LINE.search, path.read_text().splitlines()) if m]
+        if not rows:
+            raise SystemExit(f"{path}: no scores in it")
+        found.setdefault((kind, variant), {})[seed] = [sum(r[k] for r in rows) / len(rows) for k in range(len(SCORES))]
+    if not found:
+        raise SystemExit(f"{folder}: no VARIANT-sSEED.SET.txt score files")
+    lines = ["| set | variant | seeds | " + " | ".join(SCORES) + " |", "|---|---|---:|" + "---:|" * len(SCORES)]
+    for (kind, variant), seeds in sorted(found.items(), key=lambda kv: (kv[0][0], VARIANT_ORDER.index(kv[0][1]))):
+        cells = []
+        for k in range(len(SCORES)):
+            vals = [v[k] for v in seeds.values()]
+            mean, half = sum(vals) / len(vals), (max(vals) - min(vals)) / 2
+            digits = 2 if SCORES[k].endswith("°") else 4
+            cells.append(f"{mean:.{digits}f} ± {half:.{digits}f}")
+        lines.append(f"| {kind} | {variant} | {len(seeds)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+VARIANT_ORDER = ("four", "one_encoder", "global_track", "no_global_skip")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("runs", nargs="*", type=Path)
     parser.add_argument("--reference", type=Path, help="a run of the same configuration to compare `four` with")
+    parser.add_argument("--scores", type=Path, help="tabulate the seeds' score files in this folder instead")
     args = parser.parse_args()
+    if args.scores is not None:
+        print(seed_table(args.scores))
+        return 0
+    if not args.runs:
+        parser.error("give run folders, or --scores DIR")
 
     rows = []
     for run in args.runs:
