@@ -19,7 +19,9 @@ photos; never trained on), SIZE² px over the 120 mm field, 8-bit sRGB with read
 
 Printed per rig and light count: novel-light RMSE (linear, clipped; 16 lights for dome24,
 the 20 test lights for the RTI dome) against the true maps, and the normals' mean error
-in degrees, averaged over the materials.
+in degrees, averaged over the materials; then the RMSE's mean over the 5 artist-style
+sets and over the 3 photo-built ones apart (a network trained on photo-built library
+sets, made by the same rule from other photos, is nearer the second group).
 
 With ``--networks-only``: the networks alone, without the solver or rti-icon (about a
 minute): the dome24 networks, each WEIGHTS given (several any-rig networks side by side,
@@ -80,6 +82,22 @@ def scores(pred: MapSet, truth: MapSet, lights, field) -> tuple[float, float]:
     return float((a - b).square().mean().sqrt()), float(torch.rad2deg(torch.acos(cos)).mean())
 
 
+def means(vals: list[tuple[float, float]]) -> tuple[float, float, float, float]:
+    """Mean novel-light RMSE and normals' error over the materials, then the RMSE's mean over
+    the artist-style sets and over the photo-built ones (they come in that order)."""
+    a = len(ARTIST_NAMES)
+
+    def mean(xs):
+        return sum(xs) / len(xs)
+
+    return (
+        mean([v[0] for v in vals]),
+        mean([v[1] for v in vals]),
+        mean([v[0] for v in vals[:a]]),
+        mean([v[0] for v in vals[a:]]),
+    )
+
+
 def refined(start: MapSet, cap: Capture, strength: float) -> MapSet:
     """The ``lm`` solver started from a network's maps and held near them."""
     return solve_maps(start, cap, ReconstructConfig().lm, strength)[0]
@@ -124,11 +142,10 @@ def networks_only(paths: list[str], size: int) -> None:
             got += [(path, MapSet(**predict_capture(net, cap))) for path, net in anyrigs]
             for method, pred in got:
                 rows.setdefault((rig_name, count, method), []).append(scores(pred, maps, lights, rig.field_mm))
-    print(f"{'rig':20s} {'lights':>6s} {'novel RMSE':>10s} {'normal °':>9s}  method")
+    print(f"{'rig':20s} {'lights':>6s} {'novel RMSE':>10s} {'normal °':>9s} {'artist':>7s} {'photo':>7s}  method")
     for (rig, count, method), vals in rows.items():
-        rmse = sum(v[0] for v in vals) / len(vals)
-        deg = sum(v[1] for v in vals) / len(vals)
-        print(f"{rig:20s} {count:>6s} {rmse:10.4f} {deg:9.2f}  {method}")
+        rmse, deg, artist, photo = means(vals)
+        print(f"{rig:20s} {count:>6s} {rmse:10.4f} {deg:9.2f} {artist:7.4f} {photo:7.4f}  {method}")
     print(f"{len(materials)} materials at {size}², {time.perf_counter() - t0:.0f} s")
 
 
@@ -180,11 +197,11 @@ def main() -> None:
             rows.setdefault(("RTI dome (unseen)", str(count), "solver alone"), []).append(
                 scores(res.maps, maps, lights, rti.field_mm)
             )
-    print(f"{'rig':20s} {'lights':>6s} {'method':18s} {'novel RMSE':>10s} {'normal °':>9s}")
+    head = f"{'novel RMSE':>10s} {'normal °':>9s} {'artist':>7s} {'photo':>7s}"
+    print(f"{'rig':20s} {'lights':>6s} {'method':18s} {head}")
     for (rig, count, method), vals in rows.items():
-        rmse = sum(v[0] for v in vals) / len(vals)
-        deg = sum(v[1] for v in vals) / len(vals)
-        print(f"{rig:20s} {count:>6s} {method:18s} {rmse:10.4f} {deg:9.2f}")
+        rmse, deg, artist, photo = means(vals)
+        print(f"{rig:20s} {count:>6s} {method:18s} {rmse:10.4f} {deg:9.2f} {artist:7.4f} {photo:7.4f}")
     print(f"{len(materials)} materials at {size}², {time.perf_counter() - t0:.0f} s")
     real_capture(anyrig, nets)
 

@@ -32,7 +32,7 @@ import csv
 import json
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from matscan.errors import MatscanError
+from matscan.mapset import MapSet
 from matscan.nets import IRRADIANCE_FLOOR, LOG_SCALE, OUT_CHANNELS
 from matscan.render import flat_irradiance
 from matscan.rig import LightSet
@@ -308,15 +309,33 @@ def random_lights(g: torch.Generator, count: int, reference_mm: float = 225.0) -
     return lights, height
 
 
-def sample(g: torch.Generator, size: int, photos: int, prior: str = "v2") -> dict[str, Tensor]:
-    """One training sample: a procedural material (a crop of a 120 mm field) photographed
-    under ``photos`` random lights of a random rig, through the camera model."""
+def sample(
+    g: torch.Generator,
+    size: int,
+    photos: int,
+    prior: str = "v2",
+    library: Sequence[MapSet] = (),
+    library_prob: float = 0.5,
+    library_metal_prob: float = 0.0,
+) -> dict[str, Tensor]:
+    """One training sample: a material (a crop of a 120 mm field) photographed under
+    ``photos`` random lights of a random rig, through the camera model. The material is
+    procedural (``prior``) or, with probability ``library_prob`` when ``library`` is given,
+    a random crop of one of its map sets, metallized (:func:`matscan.data.metallize`)
+    with probability ``library_metal_prob``. Without a library the draws are those of
+    every earlier run."""
     from matscan.capture.virtual import CameraModel, apply_camera
+    from matscan.data import metallize, random_crop
     from matscan.materials.procedural import random_material
     from matscan.render import render_maps, surface_points
 
-    seed = int(torch.randint(0, 2**31 - 1, (), generator=g))
-    _, maps = random_material(size, seed, prior=prior)
+    if library and float(torch.rand((), generator=g)) < library_prob:
+        maps = random_crop(library[int(torch.randint(len(library), (), generator=g))], g, size)
+        if library_metal_prob > 0 and float(torch.rand((), generator=g)) < library_metal_prob:
+            maps = metallize(maps, g)
+    else:
+        seed = int(torch.randint(0, 2**31 - 1, (), generator=g))
+        _, maps = random_material(size, seed, prior=prior)
     full = 4 * size
     off = (
         int(torch.randint(0, full - size + 1, (), generator=g)),
@@ -353,14 +372,27 @@ class TrainAnyRig:
     seed: int = 0
     prior: str = "v2"
     device: str = "auto"
+    library: tuple[str, ...] = ()  # map set folders mixed with the procedural prior (tools/photo_library.py)
+    library_prob: float = 0.5  # the share of samples drawn from them, when there are any
+    library_metal_prob: float = 0.0  # the share of those given metal patches (matscan.data.metallize)
 
 
 CHECKPOINT = "checkpoint.safetensors"
 
 
-def _batch(g: torch.Generator, cfg: TrainAnyRig) -> dict[str, Tensor]:
+def read_library(paths: Iterable[str | Path]) -> list[MapSet]:
+    """The map sets of a training config's ``library``, read once (a folder that is not a
+    map set is a one-line MatscanError naming it)."""
+    from matscan.materials.library import read_any
+
+    return [read_any(p) for p in paths]
+
+
+def _batch(g: torch.Generator, cfg: TrainAnyRig, library: Sequence[MapSet] = ()) -> dict[str, Tensor]:
     k = int(torch.randint(cfg.min_photos, cfg.max_photos + 1, (), generator=g))
-    items = [sample(g, cfg.size, k, cfg.prior) for _ in range(cfg.batch)]
+    items = [
+        sample(g, cfg.size, k, cfg.prior, library, cfg.library_prob, cfg.library_metal_prob) for _ in range(cfg.batch)
+    ]
     return {key: torch.stack([it[key] for it in items]) for key in items[0]}
 
 
@@ -379,6 +411,10 @@ def train(
     from safetensors.torch import load_file, save_file
     from tqdm import tqdm
 
+    from matscan.materials.procedural import check_prior
+
+    check_prior(cfg.prior)
+    library = read_library(cfg.library)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     device = torch.device(
@@ -410,7 +446,7 @@ def train(
             writer.writerow(["step", "loss", "photos", "seconds"])
         while time.monotonic() < deadline and (max_steps is None or step < max_steps):
             t0 = time.perf_counter()
-            batch = {k: v.to(device) for k, v in _batch(g, cfg).items()}
+            batch = {k: v.to(device) for k, v in _batch(g, cfg, library).items()}
             present = torch.ones(batch["x"].shape[:2], device=device)
             value = loss(net(batch["x"], present), batch)
             opt.zero_grad()

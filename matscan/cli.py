@@ -541,7 +541,18 @@ def cmd_batch(args: argparse.Namespace) -> str:
 def cmd_train_anyrig(args: argparse.Namespace) -> str:
     from matscan.anyrig import AnyRigConfig, TrainAnyRig, train
 
-    cfg = TrainAnyRig(size=args.size, batch=args.batch, max_photos=args.max_photos, seed=args.seed, device=args.device)
+    cfg = TrainAnyRig(
+        size=args.size,
+        batch=args.batch,
+        max_photos=args.max_photos,
+        lr=args.lr,
+        seed=args.seed,
+        prior=args.prior,
+        device=args.device,
+        library=tuple(args.library),
+        library_prob=args.library_prob,
+        library_metal_prob=args.library_metal_prob,
+    )
     net_cfg = None if args.ps_skip is None else AnyRigConfig(ps_skip=args.ps_skip)
     result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
     return f"train-anyrig: {result['steps']} steps in all; checkpoint {result['checkpoint']}"
@@ -984,7 +995,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=positive_int, default=64, help="crop size, a multiple of 4 (default 64)")
     p.add_argument("--batch", type=positive_int, default=4, help="samples per step (default 4)")
     p.add_argument("--max-photos", dest="max_photos", type=positive_int, default=12, help="most photos a sample")
+    p.add_argument("--lr", type=positive_float, default=3e-4, help="Adam's learning rate (default 3e-4)")
     p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--prior", default="v2", help="procedural material prior, as for train (default v2)")
+    p.add_argument(
+        "--library",
+        nargs="+",
+        default=[],
+        metavar="MAPSET",
+        help="map set folders mixed with the procedural materials (tools/photo_library.py builds some)",
+    )
+    p.add_argument(
+        "--library-prob",
+        dest="library_prob",
+        type=_number(float, 0, 1),
+        default=0.5,
+        metavar="P",
+        help="share of samples drawn from --library (default 0.5)",
+    )
+    p.add_argument(
+        "--library-metal-prob",
+        dest="library_metal_prob",
+        type=_number(float, 0, 1),
+        default=0.0,
+        metavar="P",
+        help="share of those given metal patches, as train's library_metal_prob (default 0)",
+    )
     p.add_argument("--device", default="auto", help="auto (CUDA when there is one), cpu or cuda")
     p.add_argument(
         "--ps-skip",

@@ -162,6 +162,19 @@ def metallize(maps: MapSet, g: torch.Generator) -> MapSet:
     )
 
 
+def random_crop(maps: MapSet, g: torch.Generator, size: int) -> MapSet:
+    """A ``size``² crop of ``maps`` at a place drawn from ``g`` (tiled first where the
+    map set is smaller than that)."""
+    h, w = maps.size
+    if h < size or w < size:
+        reps = (math.ceil(size / h), math.ceil(size / w))
+        maps = MapSet(**{n: t.repeat(1, *reps) for n, t in maps.present().items()})
+        h, w = maps.size
+    top = int(torch.randint(0, h - size + 1, (), generator=g))
+    left = int(torch.randint(0, w - size + 1, (), generator=g))
+    return maps.crop(top, left, size, size)
+
+
 def composite_over_stage(maps: MapSet) -> MapSet:
     """Maps as the camera sees them where alpha < 1: the dark stage shows through."""
     if maps.alpha is None:
@@ -214,15 +227,7 @@ class SvbrdfDataset(Dataset):
 
         if k not in self._library_cache:
             self._library_cache[k] = read_any(self.library[k])
-        maps = self._library_cache[k]
-        h, w = maps.size
-        if h < size or w < size:
-            reps = (math.ceil(size / h), math.ceil(size / w))
-            maps = MapSet(**{n: t.repeat(1, *reps) for n, t in maps.present().items()})
-            h, w = maps.size
-        top = int(torch.randint(0, h - size + 1, (), generator=g))
-        left = int(torch.randint(0, w - size + 1, (), generator=g))
-        return maps.crop(top, left, size, size)
+        return random_crop(self._library_cache[k], g, size)
 
     def light_subset(self, g: torch.Generator) -> list[int]:
         """The lights photographed for one sample (see module doc, step 5)."""

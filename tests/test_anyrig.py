@@ -132,6 +132,73 @@ def test_it_learns_a_batch():
         assert float(loss(net(batch["x"], present), batch)) < 0.6 * first
 
 
+def test_without_a_library_a_sample_is_the_procedural_material_of_its_first_draw():
+    from matscan.anyrig import sample
+    from matscan.materials.procedural import random_material
+
+    got = sample(torch.Generator().manual_seed(5), 16, 2, prior="v4")
+    seed = int(torch.randint(0, 2**31 - 1, (), generator=torch.Generator().manual_seed(5)))
+    want = random_material(16, seed, prior="v4")[1]
+    for k in ("diffuse", "specular", "roughness", "normal"):
+        torch.testing.assert_close(got[k], getattr(want, k), rtol=0, atol=0)
+
+
+def test_library_samples_are_crops_of_the_library_maps():
+    from matscan.anyrig import sample
+    from matscan.mapset import MapSet
+
+    # every pixel of the 24² set has its own diffuse value, so a crop's place is unique
+    ramp = torch.arange(24 * 24, dtype=torch.float32).view(1, 24, 24) / (24 * 24)
+    normal = torch.nn.functional.normalize(torch.stack([ramp[0] - 0.5, 0.5 - ramp[0], torch.ones(24, 24)]), dim=0)
+    lib = MapSet(
+        diffuse=torch.cat([ramp, 1 - ramp, ramp.flip(-1)]),
+        specular=torch.full((3, 24, 24), 0.04),
+        roughness=0.2 + 0.5 * ramp,
+        normal=normal,
+    )
+    g = torch.Generator().manual_seed(2)
+    places = set()
+    for _ in range(6):
+        s = sample(g, 8, 3, library=[lib], library_prob=1.0)
+        found = [
+            (r, c)
+            for r in range(24 - 8 + 1)
+            for c in range(24 - 8 + 1)
+            if torch.equal(s["diffuse"], lib.diffuse[:, r : r + 8, c : c + 8])
+        ]
+        assert len(found) == 1
+        r, c = found[0]
+        assert torch.equal(s["normal"], lib.normal[:, r : r + 8, c : c + 8])
+        assert torch.equal(s["roughness"], lib.roughness[:, r : r + 8, c : c + 8])
+        assert s["x"].shape == (3, 10, 8, 8) and torch.isfinite(s["x"]).all()
+        places.add(found[0])
+    assert len(places) > 1  # the crop moves
+    metal = sample(torch.Generator().manual_seed(2), 8, 1, library=[lib], library_prob=1.0, library_metal_prob=1.0)
+    assert float(metal["specular"].amax()) > 0.3  # metal patches: F0 far above the set's 0.04
+
+
+def test_train_anyrig_mixes_a_library_and_names_a_bad_folder(tmp_path, capsys):
+    from matscan.cli import main
+    from matscan.mapset import write_mapset
+    from matscan.materials.procedural import random_material
+
+    write_mapset(tmp_path / "lib", random_material(32, 1)[1])
+    small = ["--size", "16", "--batch", "2", "--max-photos", "2", "--max-steps", "2"]
+    out = tmp_path / "run"
+    assert main(["train-anyrig", "--out", str(out), "--library", str(tmp_path / "lib"), "--lr", "1e-4", *small]) == 0
+    import json
+
+    cfg = json.loads((out / "config.json").read_text())["train"]
+    assert cfg["library"] == [str(tmp_path / "lib")] and cfg["lr"] == 1e-4
+    capsys.readouterr()
+    code = main(["train-anyrig", "--out", str(tmp_path / "bad"), "--library", str(tmp_path / "nowhere"), *small])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and str(tmp_path / "nowhere") in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "bad").exists()  # checked before the run folder is made
+    with pytest.raises(SystemExit):
+        main(["train-anyrig", "--out", str(tmp_path / "bad"), "--library-prob", "1.5", *small])
+
+
 # --- inference over a whole capture, and reconstruct's --anyrig -------------------------
 
 
