@@ -389,8 +389,8 @@ def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
     if out.suffix.lower() not in (".lp", ".json"):
         raise MatscanError(f"--out: {out.name} must end in .lp (an RTI light file) or .json (a rig)")
     with claim_output(out, "rig from-sphere", [folder], kind="file", overwrite=args.overwrite):
-        cx, cy, radius = given if given is not None else find_sphere(photos, args.encoding, str(folder))
-        directions = directions_from_sphere(photos, (cx, cy), radius, args.encoding)
+        cx, cy, radius = given if given is not None else find_sphere(photos, args.encoding, str(folder), args.fov)
+        directions = directions_from_sphere(photos, (cx, cy), radius, args.encoding, args.fov)
         lights = LightFile(tuple(p.name for p in photos), tuple(directions))
         if out.suffix.lower() == ".lp":
             write_text(out, lp_text(rig_from_lp(lights), lights.files, y=args.y))
@@ -889,6 +889,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--sphere",
         metavar="CX,CY,R",
         help="the sphere's centre (column, row) and radius, pixels (default: found in the photos)",
+    )
+    q.add_argument(
+        "--fov",
+        type=_number(float, 0, 180, low_open=True),
+        default=None,
+        metavar="DEG",
+        help="the camera's angle of view across the photos' width, degrees (a 50 mm lens on a 36 mm wide sensor: "
+        "39.6); the sphere is then seen through a pinhole centred on the photo, not from straight above "
+        "(default: orthographic, as RTI software assumes)",
     )
     q.add_argument("--out", required=True, help=".lp light file or rig .json to write")
     q.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)

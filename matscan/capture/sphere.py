@@ -2,7 +2,10 @@
 
 A mirror-like sphere photographed from far above (an orthographic view, v = +z) shows
 each light as a small highlight where its normal bisects the light and the view:
-n = normalize(l + v), so l = 2 (n·v) n − v. The sphere's outline in the photos (centre
+n = normalize(l + v), so l = 2 (n·v) n − v. Given the camera's angle of view, the view
+is a pinhole camera's instead (:func:`perspective_sphere`): a sphere off the optical axis
+is seen obliquely, v tilts by the angle it lies off the axis, and the orthographic
+reading errs by about that much. The sphere's outline in the photos (centre
 and radius, in pixels) is given; in each photo the highlight is found as the brightest
 spot inside the outline, grown to the connected region brighter than halfway between the
 sphere's median and that peak (a saturated highlight is a plateau), and its normal as
@@ -60,16 +63,89 @@ def sphere_normals(size: tuple[int, int], centre: tuple[float, float], radius: f
     return torch.stack([nx, ny, nz]), mask
 
 
-def highlight_direction(image: Tensor, centre: tuple[float, float], radius: float, where: str = "photo") -> Tensor:
+def _pinhole_rays(x: Tensor, y: Tensor, size: tuple[int, int], fov_deg: float) -> Tensor:
+    """Unit rays (3, ...) from a pinhole camera through pixel positions x (column) and y
+    (row): the camera looks down −z, +y toward the image's top, its principal point the
+    image's centre and ``fov_deg`` its angle of view across the width."""
+    h, w = size
+    f = (w / 2) / math.tan(math.radians(fov_deg) / 2)
+    d = torch.stack([x - (w - 1) / 2, -(y - (h - 1) / 2), torch.full_like(x, -f)])
+    return d / d.norm(dim=0, keepdim=True)
+
+
+def cone_outline(axis: Tensor, half: float, size: tuple[int, int], fov_deg: float) -> tuple[float, float, float]:
+    """The outline (centre column, centre row, radius; pixels) that :func:`perspective_sphere`
+    reads for a sphere whose tangent cone from the camera has unit ``axis`` and half-angle
+    ``half`` (radians): the circle through the silhouette's points nearest and farthest
+    from the principal point (closed form)."""
+    h, w = size
+    f = (w / 2) / math.tan(math.radians(fov_deg) / 2)
+    a = axis.double() / axis.double().norm()
+    radial = torch.stack([a[0], a[1]])
+    radial = radial / radial.norm() if float(radial.norm()) > 1e-12 else torch.tensor([1.0, 0.0], dtype=torch.float64)
+    tilt = math.acos(max(-1.0, min(1.0, -float(a[2]))))
+    pts = []
+    for t in (tilt - half, tilt + half):  # the cone's edges in the plane of its axis and the optical axis
+        r = f * math.tan(t)
+        pts.append(((w - 1) / 2 + r * float(radial[0]), (h - 1) / 2 - r * float(radial[1])))
+    return (pts[0][0] + pts[1][0]) / 2, (pts[0][1] + pts[1][1]) / 2, math.dist(pts[0], pts[1]) / 2
+
+
+def perspective_sphere(
+    size: tuple[int, int], centre: tuple[float, float], radius: float, fov_deg: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """A sphere seen through a pinhole camera: normals (3, H, W), the unit directions
+    toward the camera (3, H, W) and the mask (H, W) of the pixels that see the sphere no
+    nearer its rim than ``INNER`` of the orthographic case does (n·v above √(1 − INNER²)).
+
+    The camera looks down −z from the origin with +y toward the image's top; its principal
+    point is the image's centre and ``fov_deg`` its angle of view across the image's width.
+    The outline (``centre``, ``radius``, pixels) is taken as the circle through the two
+    points of the silhouette nearest and farthest from the principal point (a sphere off
+    the axis projects to an ellipse stretched along that line): the sphere's axis is the
+    bisector of their rays and its angular radius half the angle between them; the
+    sphere's size is immaterial (radius 1 here)."""
+    h, w = size
+    c = torch.tensor(centre, dtype=torch.float64)
+    off = c - torch.tensor([(w - 1) / 2, (h - 1) / 2], dtype=torch.float64)
+    u = off / off.norm() if float(off.norm()) > 1e-9 else torch.tensor([1.0, 0.0], dtype=torch.float64)
+    ends = torch.stack([c - radius * u, c + radius * u])  # (2, 2): x, y
+    d1, d2 = _pinhole_rays(ends[:, 0], ends[:, 1], size, fov_deg).T
+    axis = (d1 + d2) / (d1 + d2).norm()
+    half = math.acos(max(-1.0, min(1.0, float(d1 @ d2)))) / 2
+    s = axis / math.sin(half)  # the sphere's centre (radius 1) from the camera
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    d = _pinhole_rays(xs, ys, size, fov_deg)  # (3, H, W)
+    b = -(d * s.view(3, 1, 1)).sum(0)
+    disc = b * b - (float(s @ s) - 1)
+    t = -b - disc.clamp_min(0).sqrt()
+    normals = t * d - s.view(3, 1, 1)
+    views = -d
+    mask = (disc > 0) & ((normals * views).sum(0) > math.sqrt(1 - INNER * INNER))
+    return normals, views, mask
+
+
+def highlight_direction(
+    image: Tensor, centre: tuple[float, float], radius: float, where: str = "photo", fov_deg: float | None = None
+) -> Tensor:
     """The light direction (3,) shown by the highlight on the sphere in a linear image
-    (H, W) or (C, H, W) (module doc)."""
+    (H, W) or (C, H, W) (module doc); with ``fov_deg`` the photo is a pinhole camera's of
+    that angle of view across its width (:func:`perspective_sphere`), else orthographic."""
     grey = image.double().mean(0) if image.ndim == 3 else image.double()
-    normals, mask = sphere_normals(tuple(grey.shape), centre, radius)
     sphere = f"the sphere ({centre[0]:g}, {centre[1]:g}, r {radius:g})"
+    if fov_deg is None:
+        normals, mask = sphere_normals(tuple(grey.shape), centre, radius)
+    else:
+        normals, views, mask = perspective_sphere(tuple(grey.shape), centre, radius, fov_deg)
     weights = highlight_weights(grey, mask, where, sphere)
     n = (normals * weights).sum(dim=(1, 2))
     n = n / n.norm()
-    light = 2 * n[2] * n - torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype)
+    if fov_deg is None:
+        v = torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype)
+    else:  # the view at the highlight: the weighted mean of the pixels' views there
+        v = (views * weights).sum(dim=(1, 2))
+        v = v / v.norm()
+    light = 2 * (n @ v) * n - v
     return (light / light.norm()).float()
 
 
@@ -100,15 +176,23 @@ def _read_linear(path: str | Path, encoding: str) -> Tensor:
 
 
 def directions_from_sphere(
-    photos: Sequence[str | Path], centre: tuple[float, float], radius: float, encoding: str = "srgb"
+    photos: Sequence[str | Path],
+    centre: tuple[float, float],
+    radius: float,
+    encoding: str = "srgb",
+    fov_deg: float | None = None,
 ) -> list[tuple[float, float, float]]:
-    """Light directions (matscan's frame) from the sphere's highlight in each photo."""
+    """Light directions (matscan's frame) from the sphere's highlight in each photo; with
+    ``fov_deg`` (the camera's angle of view across the photos' width) the view is a
+    pinhole camera's, else orthographic."""
     if not (radius > 0 and math.isfinite(radius)):
         raise MatscanError(f"--sphere: radius {radius!r} must be a positive number of pixels")
+    if fov_deg is not None and not 0 < fov_deg < 180:
+        raise MatscanError(f"--fov: {fov_deg!r} must be an angle of view between 0 and 180 degrees")
     out = []
     for path in photos:
         linear = _read_linear(path, encoding)
-        d = highlight_direction(linear, centre, radius, str(path))
+        d = highlight_direction(linear, centre, radius, str(path), fov_deg)
         if float(d[2]) <= 0:
             raise input_error(path, "the highlight is at the sphere's outline: the light is at or below the horizon")
         out.append((float(d[0]), float(d[1]), float(d[2])))
@@ -139,11 +223,13 @@ OUTLINE_RAYS = 720
 
 
 def find_sphere(
-    photos: Sequence[str | Path] | Tensor, encoding: str = "srgb", where: str = "photos"
+    photos: Sequence[str | Path] | Tensor, encoding: str = "srgb", where: str = "photos", fov_deg: float | None = None
 ) -> tuple[float, float, float]:
     """The outline (centre column, centre row, radius; pixels) of a mirror-like sphere
     seen in photos of one scene under different lights: file paths, or linear images
-    (N, C, H, W). Raises a one-line error when no candidate passes (module doc)."""
+    (N, C, H, W). Raises a one-line error when no candidate passes (module doc). With
+    ``fov_deg`` the outline is fitted as a pinhole camera sees a sphere (an ellipse,
+    :func:`perspective_sphere`) and given as that function reads it."""
     n = len(photos)
     if n < 3:
         raise MatscanError(f"{where}: finding the sphere needs three photos or more; give --sphere CX,CY,R")
@@ -176,7 +262,7 @@ def find_sphere(
     _, cx, cy, r = best
     # from reduced pixels (block means) to the full-size pixel grid: centre x' = (x + 0.5)·f − 0.5
     centre = ((cx + 0.5) * factor - 0.5, (cy + 0.5) * factor - 0.5)
-    return _fit_outline(mean, centre, r * factor, where)
+    return _fit_outline(mean, centre, r * factor, where, fov_deg)
 
 
 def _circle_candidates(mean: Tensor, most: int = 24) -> list[tuple[float, float, float]]:
@@ -228,10 +314,13 @@ def _highlight_share(stack: Tensor, centre: tuple[float, float], radius: float) 
     return hits / n
 
 
-def _fit_outline(mean: Tensor, centre: tuple[float, float], radius: float, where: str) -> tuple[float, float, float]:
+def _fit_outline(
+    mean: Tensor, centre: tuple[float, float], radius: float, where: str, fov_deg: float | None = None
+) -> tuple[float, float, float]:
     """The circle through the steepest step of ``mean`` along rays from an approximate
     centre (within ±15% of the radius), fitted by least squares with outlying rays
-    dropped; twice, from the first fit's centre."""
+    dropped; twice, from the first fit's centre. With ``fov_deg``, the sphere's tangent
+    cone through those points instead (:func:`_cone_lsq`), given as :func:`cone_outline`."""
     h, w = mean.shape
     img = mean.float()[None, None]
     angles = torch.arange(OUTLINE_RAYS, dtype=torch.float64) * (2 * math.pi / OUTLINE_RAYS)
@@ -258,8 +347,11 @@ def _fit_outline(mean: Tensor, centre: tuple[float, float], radius: float, where
         for _ in range(3):
             if int(keep.sum()) < OUTLINE_RAYS // 4:
                 raise MatscanError(f"{where}: the sphere's outline is too faint to fit; give --sphere CX,CY,R")
-            cx, cy, r = _circle_lsq(px[keep], py[keep])
-            resid = ((px - cx) ** 2 + (py - cy) ** 2).sqrt() - r
+            if fov_deg is None:
+                cx, cy, r = _circle_lsq(px[keep], py[keep])
+                resid = ((px - cx) ** 2 + (py - cy) ** 2).sqrt() - r
+            else:
+                cx, cy, r, resid = _cone_lsq(px, py, keep, (h, w), fov_deg)
             spread = float(resid[keep].abs().median()) * 1.4826 + 0.05
             keep = keep & (resid.abs() < 3 * spread)
     if not (0 <= cx < w and 0 <= cy < h):
@@ -273,6 +365,22 @@ def _circle_lsq(x: Tensor, y: Tensor) -> tuple[float, float, float]:
     design = torch.stack([2 * x, 2 * y, torch.ones_like(x)], dim=1)
     a, b, c = torch.linalg.lstsq(design, x * x + y * y).solution.tolist()
     return a, b, math.sqrt(max(c + a * a + b * b, 0.0))
+
+
+def _cone_lsq(
+    x: Tensor, y: Tensor, keep: Tensor, size: tuple[int, int], fov_deg: float
+) -> tuple[float, float, float, Tensor]:
+    """The cone of rays tangent to a sphere, through outline points seen by a pinhole
+    camera: every ray d on it makes the same angle α with the axis a, d · a/cos α = 1,
+    linear in q = a / cos α (least squares over the ``keep`` points). Returns the
+    :func:`cone_outline` circle and each point's residual, in pixels (its angle from the
+    cone times the focal length)."""
+    d = _pinhole_rays(x, y, size, fov_deg).T  # (N, 3)
+    q = torch.linalg.lstsq(d[keep], torch.ones(int(keep.sum()), 1, dtype=d.dtype)).solution[:, 0]
+    axis, half = q / q.norm(), math.acos(min(1.0, 1 / float(q.norm())))
+    f = (size[1] / 2) / math.tan(math.radians(fov_deg) / 2)
+    resid = ((d @ axis).clamp(-1, 1).acos() - half) * f
+    return (*cone_outline(axis, half, size, fov_deg), resid)
 
 
 # --- near lights: positions from two (or more) spheres at known places ---------------------
