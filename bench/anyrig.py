@@ -29,7 +29,8 @@ same photos), and the photometric-stereo estimate that ``--ps-skip`` networks st
 (its albedo and normals, specular 0.04, roughness 0.5).
 
 Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
-(``WEIGHTS SIZE`` also works)
+(``WEIGHTS SIZE`` also works; ``WEIGHTS:raw`` scores a checkpoint's raw weights where it
+also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` scores)
 """
 
 from __future__ import annotations
@@ -123,9 +124,17 @@ def photometric_stereo(cap: Capture) -> MapSet:
     )
 
 
+def load_spec(spec: str):
+    """WEIGHTS, or WEIGHTS:raw for a checkpoint's raw weights where it also keeps their
+    moving average (``train-anyrig --ema``), which plain WEIGHTS gives."""
+    if spec.endswith(":raw"):
+        return load(spec[: -len(":raw")], averaged=False)
+    return load(spec)
+
+
 def networks_only(paths: list[str], size: int) -> None:
     nets, _ = load_model("default")
-    anyrigs = [(path, load(path)) for path in paths]
+    anyrigs = [(path, load_spec(path)) for path in paths]
     materials = [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
     dome = builtin_rig("dome24")
     rti, test = rti_rig(TRAIN), rti_rig(TEST)
@@ -162,7 +171,7 @@ def main() -> None:
         networks_only(args.weights, args.size)
         return
     weights, size = args.weights[0], args.size
-    anyrig = load(weights)
+    anyrig = load_spec(weights)
     nets, _ = load_model("default")
     materials = [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
     dome = builtin_rig("dome24")

@@ -552,6 +552,7 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
         library=tuple(args.library),
         library_prob=args.library_prob,
         library_metal_prob=args.library_metal_prob,
+        ema=args.ema,
     )
     net_cfg = None if args.ps_skip is None else AnyRigConfig(ps_skip=args.ps_skip)
     result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
@@ -1029,6 +1030,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         metavar="P",
         help="share of those given metal patches, as train's library_metal_prob (default 0)",
+    )
+    p.add_argument(
+        "--ema",
+        type=_number(float, 0, 1),
+        default=0.0,
+        metavar="DECAY",
+        help="also keep the weights' moving average, this decay per step (0.999: about the last 1,000 steps), "
+        "which the checkpoint's users load (default 0: none)",
     )
     p.add_argument("--device", default="auto", help="auto (CUDA when there is one), cpu or cuda")
     p.add_argument(

@@ -311,3 +311,43 @@ def test_bad_anyrig_weights_are_one_line_errors(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert code == 2 and message in err and len(err.splitlines()) == 1
         assert not (tmp_path / "out" / "matscan.json").exists()
+
+
+def test_the_moving_average_is_the_mean_of_the_weights_it_has_seen(tmp_path):
+    """With ``ema`` the checkpoint keeps w̄ ← d·w̄ + (1 − d)·w after every step; from a
+    run's own weights: after one step at decay d it is d·w0 + (1 − d)·w1 exactly, and load
+    gives it, not the raw weights. Resuming carries it on."""
+    from safetensors.torch import load_file
+
+    from matscan.anyrig import load, train
+    from matscan.cli import main
+
+    cfg = TrainAnyRig(size=16, batch=1, max_photos=3)
+    run = tmp_path / "run"
+    train(run, cfg, max_steps=1)
+    w0 = load_file(run / "checkpoint.safetensors")
+    assert not any(k.startswith("ema.") for k in w0)  # none unless asked for
+    d = 0.75
+    train(run, TrainAnyRig(size=16, batch=1, max_photos=3, ema=d), max_steps=2)
+    w1 = load_file(run / "checkpoint.safetensors")
+    names = [k for k in w1 if not k.startswith("ema.") and k != "step"]
+    assert int(w1["step"]) == 2 and names
+    moved = 0
+    for k in names:
+        torch.testing.assert_close(w1["ema." + k], d * w0[k] + (1 - d) * w1[k], rtol=0, atol=1e-6)
+        moved += int(not torch.equal(w0[k], w1[k]))
+    assert moved > 0
+    net = load(run / "checkpoint.safetensors")
+    for k, v in net.state_dict().items():
+        torch.testing.assert_close(v, w1["ema." + k], rtol=0, atol=0)
+    for k, v in load(run / "checkpoint.safetensors", averaged=False).state_dict().items():
+        torch.testing.assert_close(v, w1[k], rtol=0, atol=0)
+    train(run, TrainAnyRig(size=16, batch=1, max_photos=3, ema=d), max_steps=3)
+    w2 = load_file(run / "checkpoint.safetensors")
+    for k in names:
+        torch.testing.assert_close(w2["ema." + k], d * w1["ema." + k] + (1 - d) * w2[k], rtol=0, atol=1e-6)
+    small = ["--size", "16", "--batch", "1", "--max-photos", "3"]
+    assert main(["train-anyrig", "--out", str(run), "--max-steps", "4", *small]) == 2  # would drop the average
+    assert int(load_file(run / "checkpoint.safetensors")["step"]) == 3
+    assert main(["train-anyrig", "--out", str(tmp_path / "bad"), "--max-steps", "1", "--ema", "1", *small]) == 2
+    assert not (tmp_path / "bad").exists()
