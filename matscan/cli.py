@@ -607,6 +607,7 @@ def cmd_train(args: argparse.Namespace) -> str:
         "val_every",
         "val_count",
         "snapshot_every",
+        "ema",
         "checkpoint_minutes",
         "init",
         "prior",
@@ -833,6 +834,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="keep the weights every N steps in RUN/snapshots (float16, filled from --init), "
         "to score the run along its way (default 0: none)",
+    )
+    p.add_argument(
+        "--ema",
+        type=_number(float, 0, 1),
+        default=None,
+        metavar="DECAY",
+        help="also keep the weights' moving average, this decay per step (0.999: about the last 1,000 steps); "
+        "exports and snapshots take it in place of the weights (default 0: none)",
     )
     p.add_argument("--checkpoint-minutes", dest="checkpoint_minutes", type=positive_float, default=None)
     p.add_argument(

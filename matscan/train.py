@@ -4,7 +4,9 @@ One run lives in a folder::
 
     RUN/config.json              the TrainConfig (written once; a resume must match it,
                                  except in where it runs: RUNTIME_FIELDS)
-    RUN/checkpoint.safetensors   weights + Adam state + step (overwritten atomically)
+    RUN/checkpoint.safetensors   weights + Adam state + step (overwritten atomically),
+                                 and with ``ema`` the weights' moving average (ema.*),
+                                 which exports, snapshots and ``init`` take
     RUN/log.csv                  one row per logged step: losses per map and their terms
     RUN/val.csv                  validation RMSE per map every ``val_every`` steps
     RUN/snapshots/step-N.safetensors
@@ -83,7 +85,7 @@ from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights, re
 from matscan.nets import MAPS, PRESETS, VARIANTS, MapNets, NetConfig, lights_to, network_input, preset
 from matscan.render import surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
-from matscan.weights.format import _trained, training_record
+from matscan.weights.format import EMA, _trained, network_names, training_record
 from matscan.weights.format import check_maps as _check_maps
 from matscan.weights.format import load_weights as load_weights  # re-exported: tools and tests load through train
 from matscan.weights.format import metadata as _metadata
@@ -124,6 +126,9 @@ class TrainConfig:
     render_with: str = "own"  # "own": each network's rendering term, the rest true; "joint": one for all
     named_subset_prob: float = 0.5  # the share of samples lit by one of the rig's named subsets (the rest: random)
     snapshot_every: int = 0  # keep the weights every N steps in RUN/snapshots (0: none), to score a run along its way
+    # also keep the weights' exponential moving average, this decay per step (0: none); the
+    # checkpoint holds it as ema.*, and exports and snapshots take it in place of the weights
+    ema: float = 0.0
 
     @staticmethod
     def from_dict(data: dict[str, Any], where: str = "config") -> TrainConfig:
@@ -296,11 +301,14 @@ def save_checkpoint(
     cfg: TrainConfig,
     elapsed: float,
     extra: dict[str, str] | None = None,
+    ema: dict[str, Tensor] | None = None,
 ) -> None:
     """Weights, Adam state, step and network config in one safetensors file, written
-    atomically; ``extra``: more metadata (the run's ``init`` record). Tensors are
-    stored from CPU copies, so the file loads on any device."""
+    atomically; ``extra``: more metadata (the run's ``init`` record); ``ema``: the
+    weights' moving average (``TrainConfig.ema``). Tensors are stored from CPU copies,
+    so the file loads on any device."""
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in nets.state_dict().items()}
+    tensors.update({f"{EMA}{k}": v.detach().cpu().contiguous() for k, v in (ema or {}).items()})
     state = opt.state_dict()
     adam_steps = {}
     for pid, st in state["state"].items():
@@ -321,15 +329,16 @@ def save_checkpoint(
 
 
 def load_checkpoint(
-    path: Path, nets: MapNets, opt: torch.optim.Optimizer | None, subset: bool = False
+    path: Path, nets: MapNets, opt: torch.optim.Optimizer | None, subset: bool = False, averaged: bool = False
 ) -> tuple[int, float, dict]:
     """Restore weights (and Adam state); returns (step, elapsed seconds, metadata).
     Without ``opt`` the file may also be an exported weights file. ``subset``: the
     file may hold more networks than ``nets`` (a run that trains some of them
-    starting from all four); only ``nets``' own are taken."""
+    starting from all four); only ``nets``' own are taken. ``averaged``: a checkpoint's
+    moving average of the weights where it keeps one, in place of the weights."""
     meta = _metadata(path)
     tensors = load_file(str(path))
-    model = {k.removeprefix("model."): v for k, v in tensors.items() if not k.startswith("opt.")}
+    model = {name: tensors[k] for name, k in network_names(tensors, averaged).items()}
     if subset:
         own = nets.state_dict()
         model = {k: v for k, v in model.items() if k in own}
@@ -383,9 +392,8 @@ def export_weights(
         raise input_error(checkpoint, f"take: {asked} is not among the networks it trained ({trained})")
     if cfg.variant != "four" and set(own) != set(cfg.maps):
         raise input_error(checkpoint, "only the four independent networks (variant four) can be taken apart")
-    stored = load_file(str(checkpoint))
-    if any(k.startswith("model.") for k in stored):  # a checkpoint: the networks, not Adam's state
-        stored = {k.removeprefix("model."): v for k, v in stored.items() if k.startswith("model.")}
+    stored = load_file(str(checkpoint))  # the networks (a checkpoint's moving average where it keeps one)
+    stored = {name: stored[k] for name, k in network_names(stored).items()}
     tensors = {k: v for k, v in stored.items() if not k.startswith("nets.") or k.split(".")[1] in own}
     networks = {m: {**r, "from": str(checkpoint)} for m, r in training_record(meta).items() if m in own}
     if fill_from is not None and set(own) == set(MAPS):
@@ -402,10 +410,10 @@ def export_weights(
             "diffuse" in fill_maps and fill_net.photo_statistic != net.photo_statistic
         ):
             raise input_error(fill_from, f"its networks ({fill_net}) do not fit those of {checkpoint} ({net})")
-        for k, v in load_file(str(fill_from)).items():
-            k = k.removeprefix("model.")
+        fill = load_file(str(fill_from))
+        for k, stored_name in network_names(fill).items():
             if k.startswith("nets.") and k.split(".")[1] in fill_maps:
-                tensors[k] = v
+                tensors[k] = fill[stored_name]
         # an assembled file keeps its networks' own records, except where a network's
         # record names its run's checkpoint and the fill is that run's own copy beside it
         # (the float16 weights.safetensors kept in git instead of the checkpoint)
@@ -559,6 +567,8 @@ def train(
     data_cfg = data_config(cfg)
     if cfg.snapshot_every < 0:
         raise MatscanError(f"snapshot_every: {cfg.snapshot_every} must be 0 (none) or a number of steps")
+    if not 0 <= cfg.ema < 1:
+        raise MatscanError(f"ema: {cfg.ema!r} must be a decay per step in [0, 1) (0: no moving average)")
     if cfg.render_with not in RENDER_WITH:
         raise MatscanError(f"render_with: {cfg.render_with!r} is not one of {', '.join(RENDER_WITH)}")
     if world > 1 and not torch.distributed.is_initialized():
@@ -600,7 +610,7 @@ def train(
     elif init is not None:
         init_meta = _metadata(init)
         init_cfg = _config_of(init_meta, init)
-        load_checkpoint(init, nets, None, subset=True)  # weights only: Adam starts afresh
+        load_checkpoint(init, nets, None, subset=True, averaged=True)  # weights only: Adam starts afresh
         before, seconds = _trained(init_meta)  # the training behind the init weights, their own init included
         init_record = {
             "init": str(cfg.init),
@@ -610,6 +620,14 @@ def train(
             "init_networks": json.dumps({m: r for m, r in training_record(init_meta).items() if m in cfg.maps}),
         }
     sample_offset = int(init_record.get("init_step", 0))  # the samples the init weights saw are skipped
+    ema = None
+    if cfg.ema and rank == 0:  # from the checkpoint's own average, else from the weights now
+        kept = (
+            {k.removeprefix(EMA): v for k, v in load_file(str(ckpt)).items() if k.startswith(EMA)}
+            if ckpt.is_file()
+            else {}
+        )
+        ema = {k: kept.get(k, v).detach().to(v.device, copy=True) for k, v in nets.state_dict().items()}
 
     model: torch.nn.Module = nets
     if world > 1:
@@ -672,6 +690,10 @@ def train(
             for params in _groups(nets).values():
                 torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
             opt.step()
+            if ema is not None:
+                with torch.no_grad():
+                    for k, v in nets.state_dict().items():
+                        ema[k].lerp_(v, 1 - cfg.ema)
             step += 1
             bar.update(1)
             last_terms = terms
@@ -691,14 +713,14 @@ def train(
                     _append_csv(val_path, {"step": step, **{k: round(v, 6) for k, v in last_val.items()}})
                 snap = cfg.snapshot_every and step % cfg.snapshot_every == 0
                 if snap or time.monotonic() - last_ckpt > cfg.checkpoint_minutes * 60:
-                    save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start, init_record)
+                    save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start, init_record, ema)
                     last_ckpt = time.monotonic()
                 if snap:
                     snapshot(run, step, cfg)
     finally:
         bar.close()
         if rank == 0:
-            save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start, init_record)
+            save_checkpoint(ckpt, nets, opt, step, cfg, elapsed + time.monotonic() - t_start, init_record, ema)
             for sig, handler in old_handlers.items():
                 signal.signal(sig, handler)
         if world > 1:

@@ -407,3 +407,41 @@ def test_variants_trained_side_by_side_equal_their_own_runs(tmp_path):
     assert any(not torch.equal(a, b) for a, b in zip(four0, four1, strict=True))  # seeds differ
     weights, meta = load_weights(tmp_path / "together" / "no_global_skip-s0.safetensors")
     assert meta["step"] == "3" and weights.variant == "no_global_skip"
+
+
+def test_a_moving_average_of_the_weights_is_kept_exported_and_resumed(tmp_path):
+    """With ``ema`` d the checkpoint keeps w̄ ← d·w̄ + (1 − d)·w after every step, from the
+    weights it starts with: after one step w̄ = d·w0 + (1 − d)·w1 exactly (w0 from a run
+    stopped at step 0's twin). Exports, snapshots and loading take the average; a resume
+    carries it on and equals the uninterrupted run."""
+    d = 0.5
+    base = {**CFG.__dict__, "val_every": 0, "steps": 3}
+    train(TrainConfig(**{**base, "steps": 1}), tmp_path / "plain", max_steps=0, progress=False)  # w0, untrained
+    w0 = load_file(str(tmp_path / "plain" / CHECKPOINT))
+    cfg = TrainConfig(**{**base, "ema": d, "snapshot_every": 1})
+    train(cfg, tmp_path / "a", max_steps=1, progress=False)
+    w1 = load_file(str(tmp_path / "a" / CHECKPOINT))
+    names = [k for k in w1 if k.startswith("model.")]
+    assert names and all("ema." + k.removeprefix("model.") in w1 for k in names)
+    moved = 0
+    for k in names:
+        want = d * w0[k] + (1 - d) * w1[k]
+        torch.testing.assert_close(w1["ema." + k.removeprefix("model.")], want, rtol=0, atol=1e-6)
+        moved += int(not torch.equal(w0[k], w1[k]))
+    assert moved > 0
+    loaded, _ = load_weights(tmp_path / "a" / CHECKPOINT)
+    exported, _ = load_weights(export_weights(tmp_path / "a" / CHECKPOINT, tmp_path / "w.safetensors"))
+    snap, _ = load_weights(snapshots(tmp_path / "a")[0])
+    for k, v in loaded.state_dict().items():
+        torch.testing.assert_close(v, w1["ema." + k], rtol=0, atol=0)
+        torch.testing.assert_close(exported.state_dict()[k], v, rtol=0, atol=0)
+        torch.testing.assert_close(snap.state_dict()[k], v.half().float(), rtol=0, atol=0)
+    train(cfg, tmp_path / "a", progress=False)  # resumed to step 3
+    train(cfg, tmp_path / "b", progress=False)  # uninterrupted
+    a, b = load_file(str(tmp_path / "a" / CHECKPOINT)), load_file(str(tmp_path / "b" / CHECKPOINT))
+    for k in (k for k in a if k.startswith("ema.")):
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+    with pytest.raises(MatscanError, match="differs in ema"):  # a resume without it would drop the average
+        train(TrainConfig(**base), tmp_path / "a", progress=False)
+    with pytest.raises(MatscanError, match="ema: 1"):
+        train(TrainConfig(**{**base, "ema": 1.0}), tmp_path / "c", progress=False)

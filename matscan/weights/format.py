@@ -13,6 +13,7 @@ foreign file is a one-line error naming it.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -171,14 +172,27 @@ def check_metadata(meta: dict[str, str], path: Path, maps: tuple[str, ...]) -> t
     return maps
 
 
+EMA = "ema."  # a checkpoint's moving average of the weights (TrainConfig.ema): ema. + the weights' name
+
+
+def network_names(keys: Iterable[str], averaged: bool = True) -> dict[str, str]:
+    """The networks' tensors among a weights file's or checkpoint's tensor names, as
+    {network name: stored name}: ``model.…`` in a checkpoint (bare in an export), or
+    with ``averaged`` the checkpoint's moving average ``ema.…`` where it keeps one; never
+    Adam's state ``opt.…``."""
+    keys = list(keys)
+    if averaged and any(k.startswith(EMA) for k in keys):
+        return {k.removeprefix(EMA): k for k in keys if k.startswith(EMA)}
+    return {k.removeprefix("model."): k for k in keys if not k.startswith(("opt.", EMA))}
+
+
 def check_fits(path: Path, nets: MapNets) -> None:
     """Refuse a file whose tensors are not exactly those of ``nets`` (names and shapes)."""
     from safetensors import safe_open
 
     want = {k: tuple(v.shape) for k, v in nets.state_dict().items()}
     with safe_open(str(path), framework="pt") as f:
-        stored = [k for k in f.keys() if not k.startswith("opt.")]
-        have = {k.removeprefix("model."): tuple(f.get_slice(k).get_shape()) for k in stored}
+        have = {name: tuple(f.get_slice(k).get_shape()) for name, k in network_names(f.keys()).items()}
     for k in sorted(set(want) | set(have)):
         if want.get(k) != have.get(k):
             shapes = f"{k}: file {have.get(k)}, network {want.get(k)}"
@@ -228,11 +242,13 @@ def load_weights(path: str | Path) -> tuple[MapNets, dict[str, str]]:
 
 
 def load_state(path: Path, nets: MapNets, subset: bool = False) -> None:
-    """Load the networks' tensors (``model.…``) of a weights file or checkpoint into
-    ``nets``; ``subset``: the file may hold more networks than ``nets``."""
+    """Load the networks' tensors of a weights file or checkpoint into ``nets`` (a
+    checkpoint's moving average where it keeps one: :func:`network_names`); ``subset``:
+    the file may hold more networks than ``nets``."""
     from safetensors.torch import load_file
 
-    model = {k.removeprefix("model."): v for k, v in load_file(str(path)).items() if not k.startswith("opt.")}
+    tensors = load_file(str(path))
+    model = {name: tensors[k] for name, k in network_names(tensors).items()}
     if subset:
         own = nets.state_dict()
         model = {k: v for k, v in model.items() if k in own}
