@@ -579,6 +579,10 @@ def cmd_synth(args: argparse.Namespace) -> str:
     return f"synth: wrote {args.count} materials with captures and {out}/contact_sheet.png in {seconds:.1f} s"
 
 
+#: ``matscan train``'s moving average of the weights for a new run (runs/dome24-ema-cpu/README.md)
+TRAIN_EMA = 0.999
+
+
 def cmd_train(args: argparse.Namespace) -> str:
 
     from matscan.train import TrainConfig, train
@@ -619,6 +623,15 @@ def cmd_train(args: argparse.Namespace) -> str:
             values[key] = value
     if args.maps:
         values["maps"] = tuple(m.strip() for m in args.maps.split(","))
+    if "ema" not in values:  # a new run averages its weights; a resumed one keeps what it began with
+        saved = Path(args.out) / "config.json"
+        if saved.is_file():
+            from matscan.jsonfile import read_json
+
+            kept = read_json(saved)
+            values["ema"] = kept.get("ema", 0.0) if isinstance(kept, dict) else 0.0
+        else:
+            values["ema"] = TRAIN_EMA
     cfg = TrainConfig.from_dict(values, args.config or "train")
     res = train(cfg, args.out, max_steps=args.max_steps, max_minutes=args.minutes)
     val = ", ".join(f"{k} {v:.4f}" for k, v in res["validation"].items()) or "no validation yet"
@@ -840,8 +853,9 @@ def build_parser() -> argparse.ArgumentParser:
         type=_number(float, 0, 1),
         default=None,
         metavar="DECAY",
-        help="also keep the weights' moving average, this decay per step (0.999: about the last 1,000 steps); "
-        "exports and snapshots take it in place of the weights (default 0: none)",
+        help="keep the weights' moving average, this decay per step (0.999: about the last 1,000 steps); "
+        "exports and snapshots take it in place of the weights (default: 0.999 for a new run, a resumed run's "
+        "own; 0: none)",
     )
     p.add_argument("--checkpoint-minutes", dest="checkpoint_minutes", type=positive_float, default=None)
     p.add_argument(

@@ -445,3 +445,26 @@ def test_a_moving_average_of_the_weights_is_kept_exported_and_resumed(tmp_path):
         train(TrainConfig(**base), tmp_path / "a", progress=False)
     with pytest.raises(MatscanError, match="ema: 1"):
         train(TrainConfig(**{**base, "ema": 1.0}), tmp_path / "c", progress=False)
+
+
+def test_the_cli_averages_a_new_run_and_resumes_a_run_as_it_began(tmp_path):
+    from matscan.cli import main
+
+    small = ["--preset", "tiny", "--crop", "32", "--batch", "2", "--val-every", "0", "--render-lights", "2"]
+    small += ["--workers", "0", "--max-steps", "1"]
+
+    def kept(run: Path) -> bool:
+        return any(k.startswith("ema.") for k in load_file(str(run / CHECKPOINT)))
+
+    assert main(["train", "--out", str(tmp_path / "new"), *small]) == 0
+    assert json.loads((tmp_path / "new" / "config.json").read_text())["ema"] == 0.999 and kept(tmp_path / "new")
+    assert main(["train", "--out", str(tmp_path / "new"), *small]) == 0  # resumed: keeps its average
+    assert _metadata(tmp_path / "new" / CHECKPOINT)["step"] == "2" and kept(tmp_path / "new")
+    assert main(["train", "--out", str(tmp_path / "none"), "--ema", "0", *small]) == 0
+    assert not kept(tmp_path / "none")
+    # a run folder from before the average (no "ema" in its config) resumes without one
+    config = json.loads((tmp_path / "none" / "config.json").read_text())
+    del config["ema"]
+    (tmp_path / "none" / "config.json").write_text(json.dumps(config))
+    assert main(["train", "--out", str(tmp_path / "none"), *small]) == 0
+    assert _metadata(tmp_path / "none" / CHECKPOINT)["step"] == "2" and not kept(tmp_path / "none")
