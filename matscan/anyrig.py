@@ -380,7 +380,7 @@ class TrainAnyRig:
     library_prob: float = 0.5  # the share of samples drawn from them, when there are any
     library_metal_prob: float = 0.0  # the share of those given metal patches (matscan.data.metallize)
     # the weights' exponential moving average kept beside them, decay per step (0: none);
-    # a run resumed without one starts it from the checkpoint's weights
+    # it starts from the checkpoint's weights where the checkpoint has no average yet
     ema: float = 0.0
 
 
@@ -420,9 +420,9 @@ def train(
 ) -> dict:
     """Train (or resume, from ``out/checkpoint.safetensors``) for ``minutes``; writes the
     checkpoint (weights, their moving average when ``cfg.ema``, and step; Adam restarts on
-    resume) and ``log.csv``. A new run's
-    network is ``net_cfg`` (default :class:`AnyRigConfig`); a resumed run keeps the
-    checkpoint's, and a ``net_cfg`` that differs from it is an error."""
+    resume) and ``log.csv``. A new run's network is ``net_cfg`` (default
+    :class:`AnyRigConfig`); a resumed run keeps the checkpoint's, and a ``net_cfg`` that
+    differs from it is an error, as is resuming a run that keeps an average without one."""
     from safetensors.torch import load_file, save_file
     from tqdm import tqdm
 
