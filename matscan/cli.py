@@ -625,7 +625,9 @@ def cmd_train(args: argparse.Namespace) -> str:
         values["maps"] = tuple(m.strip() for m in args.maps.split(","))
     if "ema" not in values:  # a new run averages its weights; a resumed one keeps what it began with
         saved = Path(args.out) / "config.json"
-        if saved.is_file():
+        if args.config:  # a run's config.json from before the average: none, so the run is remade as it was
+            values["ema"] = 0.0
+        elif saved.is_file():
             from matscan.jsonfile import read_json
 
             kept = read_json(saved)
@@ -855,7 +857,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DECAY",
         help="keep the weights' moving average, this decay per step (0.999: about the last 1,000 steps); "
         "exports and snapshots take it in place of the weights (default: 0.999 for a new run, a resumed run's "
-        "own; 0: none)",
+        "own, a --config file's own or none; 0: none)",
     )
     p.add_argument("--checkpoint-minutes", dest="checkpoint_minutes", type=positive_float, default=None)
     p.add_argument(

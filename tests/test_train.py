@@ -468,3 +468,7 @@ def test_the_cli_averages_a_new_run_and_resumes_a_run_as_it_began(tmp_path):
     (tmp_path / "none" / "config.json").write_text(json.dumps(config))
     assert main(["train", "--out", str(tmp_path / "none"), *small]) == 0
     assert _metadata(tmp_path / "none" / CHECKPOINT)["step"] == "2" and not kept(tmp_path / "none")
+    # and such a config given to a new folder remakes that run as it was: no average
+    again = ["train", "--out", str(tmp_path / "again"), "--config", str(tmp_path / "none" / "config.json")]
+    assert main([*again, "--max-steps", "1"]) == 0
+    assert json.loads((tmp_path / "again" / "config.json").read_text())["ema"] == 0 and not kept(tmp_path / "again")
