@@ -148,6 +148,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         solver=args.solver,
         refine_steps=args.steps,
         tile=args.tile,
+        mirrors=args.mirrors,
         emissive=args.emissive,
         exr=args.exr,
         directx_normals=args.directx_normals,
@@ -512,6 +513,7 @@ def cmd_batch(args: argparse.Namespace) -> str:
         validate=args.validate,
         self_calibrate=args.self_calibrate,
         exr=args.exr,
+        mirrors=args.mirrors,
     )
 
     def report(name: str, result: dict) -> None:
@@ -714,6 +716,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--steps", type=positive_int, default=150, help="adam refinement steps per tile (default 150)")
     p.add_argument("--tile", type=_number(int, 16), default=512, help="network tile size in pixels (default 512)")
+    p.add_argument(
+        "--mirrors",
+        action="store_true",
+        help="average the networks' maps over the rig's mirror symmetries that keep the lit lights (dome24: "
+        "2 views at 1, 2 and 10 photos, 4 at 6, 8 at 24): networks' maps a little better, networks' time "
+        "× views; off by default, as the solver's maps gained at some counts, lost at one (docs/results.md)",
+    )
     p.add_argument("--emissive", action="store_true", help="also fit an emissive map (fluorescent inks)")
     p.add_argument(
         "--self-calibrate",
@@ -1021,6 +1030,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--validate", type=non_negative_int, default=0, metavar="K", help="leave K photos out of each")
     p.add_argument("--self-calibrate", dest="self_calibrate", action="store_true", help="as for reconstruct")
     p.add_argument("--exr", action="store_true", help="also write every map as float EXR")
+    p.add_argument("--mirrors", action="store_true", help="as for reconstruct")
     p.set_defaults(func=cmd_batch)
 
     p = sub.add_parser("train-anyrig", help="train the any-rig network (resumes a run folder with a checkpoint)")

@@ -388,3 +388,92 @@ def test_loading_the_shipped_weights_imports_no_training_code():
     assert "matscan.nets" in out and "matscan.weights.format" in out
     for training in ("matscan.train", "matscan.data", "matscan.losses", "matscan.materials"):
         assert training not in out, out
+
+
+def _mirrored_maps(maps, ops):
+    """The sample mirrored as an image is by ``ops``, its normals turned with it (an
+    independent reading of the mirror: p' = Mᵀ p for every vector)."""
+    from matscan.mapset import MapSet
+    from matscan.reconstruct.networks import _mirror_array, mirror_frame
+
+    mt = mirror_frame(ops).T.float()
+    out = {name: _mirror_array(t, ops) for name, t in maps.present().items()}
+    out["normal"] = torch.cat([torch.einsum("ij,jhw->ihw", mt, out["normal"][:2]), out["normal"][2:]])
+    return MapSet(**out)
+
+
+def _memory_capture(maps, indices):
+    from matscan.capture import Capture
+    from matscan.capture.virtual import simulate_images
+
+    rig = builtin_rig("dome24")
+    lights = rig.light_set(indices)
+    photos = simulate_images(maps, lights, rig.field_mm, CameraModel(encoding="linear", bits=32))
+    files = tuple(f"{k:02d}.exr" for k in indices)
+    return Capture(
+        rig,
+        rig.field_mm,
+        "linear",
+        photos,
+        torch.zeros_like(photos[:, :1], dtype=torch.bool),
+        tuple(indices),
+        lights,
+        files,
+    )
+
+
+def test_a_capture_in_a_mirror_is_the_mirrored_sample_under_the_mirrored_lights():
+    from matscan.reconstruct.networks import _MirroredCapture, capture_mirrors
+
+    maps = read_mapset(sample_maps_path())
+    maps = type(maps)(**{k: v[..., :24, :24] for k, v in maps.present().items()})
+    rig = builtin_rig("dome24")
+    counts = {name: len(capture_mirrors(_memory_capture(maps, rig.subset(name)))) for name in ("1", "3", "6", "10")}
+    assert counts == {"1": 2, "3": 1, "6": 4, "10": 2}  # dome24's symmetries that keep each subset lit
+    cap = _memory_capture(maps, rig.subset("6"))
+    rect = type(maps)(**{k: v[..., :, :20] for k, v in maps.present().items()})
+    assert [ops for ops, _ in capture_mirrors(_memory_capture(rect, rig.subset("6")))] == [
+        (),
+        ("r",),
+        ("c",),
+        ("r", "c"),
+    ]
+    for ops, perm in capture_mirrors(cap)[1:]:
+        view = _MirroredCapture(cap, ops, perm)
+        truth = _memory_capture(_mirrored_maps(maps, ops), list(view.light_indices))
+        torch.testing.assert_close(view.linear((0, 24), (0, 24)), truth.images, atol=2e-5, rtol=1e-4)
+        torch.testing.assert_close(view.linear((3, 17), (5, 22)), truth.images[..., 3:17, 5:22], atol=2e-5, rtol=1e-4)
+
+
+def test_averaging_over_the_mirrors_makes_the_networks_mirror_equivariant():
+    """Whatever the networks, their mean over a group of mirrors read from the mirrored
+    sample is the mirror of it read from the sample itself (the group maps onto itself)."""
+    from matscan.reconstruct.networks import capture_mirrors, mirror_frame
+
+    maps = read_mapset(sample_maps_path())
+    maps = type(maps)(**{k: v[..., :32, :32] for k, v in maps.present().items()})
+    rig = builtin_rig("dome24")
+    torch.manual_seed(0)
+    nets = MapNets(24, PRESETS["tiny"]).eval()
+    cap = _memory_capture(maps, rig.subset("10"))
+    (ops, perm) = capture_mirrors(cap)[1]
+    mirrored = _memory_capture(_mirrored_maps(maps, ops), [perm[k] for k in rig.subset("10")])
+    plain, seen = predict_maps(nets, cap), predict_maps(nets, mirrored)
+    assert float((_mirrored_maps(plain, ops).roughness - seen.roughness).abs().max()) > 1e-3  # the networks are not
+    a, b = _mirrored_maps(predict_maps(nets, cap, symmetric=True), ops), predict_maps(nets, mirrored, symmetric=True)
+    for name in ("diffuse", "specular", "roughness", "normal"):
+        torch.testing.assert_close(a.present()[name], b.present()[name], atol=2e-4, rtol=0)
+    assert mirror_frame(ops).abs().sum() == 2  # a diagonal: the normals' x and y swapped, not only flipped
+
+
+def test_reconstruct_averages_over_the_mirrors_when_asked_and_says_how_many(tmp_path):
+    _capture(tmp_path, size=32, lights=[0, 4, 8, 12, 16, 20], name="six")
+    recs = {}
+    for flags in ([], ["--mirrors"]):
+        out = tmp_path / f"out{len(flags)}"
+        assert main(["reconstruct", str(tmp_path / "six"), "--out", str(out), "--refine", "off", *flags]) == 0
+        recs[len(flags)] = json.loads((out / "matscan.json").read_text())
+    assert recs[0]["mirrors"] == 1 and recs[1]["mirrors"] == 4  # the 6-light subset keeps 4 of dome24's mirrors
+    assert recs[1]["config"]["mirrors"] is True and recs[0]["config"]["mirrors"] is False
+    plain, mean = read_mapset(tmp_path / "out0"), read_mapset(tmp_path / "out1")
+    assert 0 < float((plain.roughness - mean.roughness).abs().mean()) < 0.1

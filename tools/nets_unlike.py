@@ -18,7 +18,9 @@ With more than one weights file, tables at the end: novel-light RMSE and roughne
 RMSE per count, and every score's mean over the counts, one row per file.
 
 Run: .venv/bin/python tools/nets_unlike.py WEIGHTS|RUN [...] [--size 128] [--per-set 2]
-[--counts 1,2,3,6,10,16,24] [--levers] [--mapsets DIR]
+[--counts 1,2,3,6,10,16,24] [--levers] [--mapsets DIR] [--mirrors]
+``--mirrors`` averages the networks' maps over the capture's mirrors, as ``reconstruct
+--mirrors`` does.
 ``--mapsets DIR`` scores the map set folders in DIR instead (resampled to SIZE²), e.g.
 the selection sets of ``tools/photo_library.py DIR --selection``: choosing among
 snapshots there leaves the unlike sets to evaluate the choice.
@@ -92,6 +94,9 @@ def main() -> int:
     parser.add_argument("--procedural", type=int, metavar="N", help="score N procedural materials instead")
     parser.add_argument("--prior", default="v1", choices=sorted(PRIORS), help="with --procedural (default v1)")
     parser.add_argument(
+        "--mirrors", action="store_true", help="the networks' maps averaged over the mirrors (reconstruct --mirrors)"
+    )
+    parser.add_argument(
         "--counts",
         default="1,2,3,6,24",
         help="light counts (Table 4 subsets; default 1,2,3,6,24), or light lists joined by + (0+4+8)",
@@ -133,7 +138,8 @@ def main() -> int:
         for count in counts:
             rows = []
             for i, m in enumerate(mats):
-                p = predict_maps(nets, capture_of(m, dome, dome.subset(count.replace("+", ",")), seed=i))
+                cap = capture_of(m, dome, dome.subset(count.replace("+", ",")), seed=i)
+                p = predict_maps(nets, cap, symmetric=args.mirrors)
                 s = map_scores(p, m)
                 scores = (s["rmse_diffuse"], s["rmse_specular"], s["rmse_roughness"], s["normal_degrees"])
                 rows.append((novel_rmse(p, m, novel_lights, dome.field_mm), *scores))

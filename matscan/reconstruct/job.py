@@ -37,7 +37,7 @@ from matscan.mapset import CONVENTIONS, MapSet, write_maps
 from matscan.nets import MapNets
 from matscan.outputs import RECORD
 from matscan.reconstruct.lm import SolverConfig
-from matscan.reconstruct.networks import predict_maps
+from matscan.reconstruct.networks import capture_mirrors, predict_maps
 from matscan.reconstruct.solver import flat_start, refine_maps, rerender_error, solve_maps
 from matscan.reconstruct.surface import alpha_from_backlight, height_from_normals
 from matscan.render import render_maps
@@ -66,6 +66,7 @@ class ReconstructConfig:
     smooth_weight: float = 0.01
     tile: int = 512
     overlap: int = 64
+    mirrors: bool = False  # average the networks' maps over the rig's mirrors that keep the lit lights (networks.py)
     refine_tile: int = 128
     saturation_warn: float = 0.05
     emissive: bool = False  # also fit an emissive map (light the sample gives off under any LED)
@@ -122,6 +123,7 @@ class Result:
     confidence: dict[str, Tensor] = field(default_factory=dict)
     choice: dict[str, Any] | None = None  # what ``--refine auto`` compared, when it compared
     start: str = "flat"  # what the maps started from: "networks", "any-rig network" or "flat"
+    mirrors: int = 0  # views the networks' maps are the mean of (1: the capture itself; 0: no networks)
     light_gains: Tensor | None = None  # (N, 3) per-photo gains found by self-calibration
     self_calibration: dict[str, Any] | None = None  # its record
 
@@ -345,7 +347,8 @@ def reconstruct_capture(
         warnings.append(unnamed)
     t0 = time.perf_counter()
     if nets is not None:
-        start, begun = predict_maps(nets, capture, cfg.tile, cfg.overlap, progress), "networks"
+        start, begun = predict_maps(nets, capture, cfg.tile, cfg.overlap, progress, cfg.mirrors), "networks"
+        views = len(capture_mirrors(capture)) if cfg.mirrors else 1
     elif anyrig is not None:
         from matscan.anyrig import predict_capture
 
@@ -358,7 +361,7 @@ def reconstruct_capture(
     refine = cfg.refine == "on" or (
         cfg.refine == "auto" and (not used_nets or len(capture.files) >= REFINE_AUTO_PHOTOS[cfg.solver])
     )
-    result = Result(start, warnings, timings, start=begun)
+    result = Result(start, warnings, timings, start=begun, mirrors=views if nets is not None else 0)
     if refine and cfg.solver == "lm" and not cfg.emissive:
         t0 = time.perf_counter()
         strength = 1.0 if used_nets else FLAT_START_PRIOR
@@ -545,6 +548,7 @@ def reconstruct(
             "mm_per_pixel": list(capture.mm_per_pixel),
             "model": {"name": cfg.model, "file": model_name, "networks": networks, "anyrig_file": anyrig_name},
             "start": res.start,
+            "mirrors": res.mirrors,
             "config": asdict(cfg),
             "refined": res.refined,
             "solver": cfg.solver if res.refined else None,
