@@ -373,13 +373,17 @@ def cmd_rig_to_lp(args: argparse.Namespace) -> str:
 def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
     from matscan.atomic import write_text
     from matscan.capture.rti import LightFile, lp_text, rig_from_lp
-    from matscan.capture.sphere import directions_from_sphere, find_sphere
+    from matscan.capture.sphere import Pinhole, directions_from_sphere, find_sphere
     from matscan.imagefile import READABLE
     from matscan.jsonfile import dumps
     from matscan.outputs import claim_output
     from matscan.rig import rig_to_dict
 
     given = _vector(args.sphere, 3, "--sphere") if args.sphere is not None else None
+    principal = _vector(args.principal_point, 2, "--principal-point") if args.principal_point is not None else None
+    if args.fov is None and (principal is not None or args.k1 != 0):
+        raise MatscanError("--principal-point and --k1 describe a pinhole camera: give its angle of view with --fov")
+    lens = Pinhole(args.fov, principal, args.k1) if args.fov is not None else None
     folder = Path(args.folder)
     if not folder.is_dir():
         raise MatscanError(f"{folder}: is not a folder of photos")
@@ -390,8 +394,8 @@ def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
     if out.suffix.lower() not in (".lp", ".json"):
         raise MatscanError(f"--out: {out.name} must end in .lp (an RTI light file) or .json (a rig)")
     with claim_output(out, "rig from-sphere", [folder], kind="file", overwrite=args.overwrite):
-        cx, cy, radius = given if given is not None else find_sphere(photos, args.encoding, str(folder), args.fov)
-        directions = directions_from_sphere(photos, (cx, cy), radius, args.encoding, args.fov)
+        cx, cy, radius = given if given is not None else find_sphere(photos, args.encoding, str(folder), lens)
+        directions = directions_from_sphere(photos, (cx, cy), radius, args.encoding, lens)
         lights = LightFile(tuple(p.name for p in photos), tuple(directions))
         if out.suffix.lower() == ".lp":
             write_text(out, lp_text(rig_from_lp(lights), lights.files, y=args.y))
@@ -933,6 +937,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="the camera's angle of view across the photos' width, degrees (a 50 mm lens on a 36 mm wide sensor: "
         "39.6); the sphere is then seen through a pinhole centred on the photo, not from straight above "
         "(default: orthographic, as RTI software assumes)",
+    )
+    q.add_argument(
+        "--principal-point",
+        dest="principal_point",
+        metavar="CX,CY",
+        help="with --fov: where the optical axis meets the photos (column, row; pixels), as a lens calibration "
+        "gives it (default: the photos' centre)",
+    )
+    q.add_argument(
+        "--k1",
+        type=_number(float),
+        default=0.0,
+        metavar="K",
+        help="with --fov: the lens's radial distortion, OpenCV's first coefficient k1 (negative: barrel; default 0)",
     )
     q.add_argument("--out", required=True, help=".lp light file or rig .json to write")
     q.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)

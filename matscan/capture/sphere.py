@@ -2,8 +2,9 @@
 
 A mirror-like sphere photographed from far above (an orthographic view, v = +z) shows
 each light as a small highlight where its normal bisects the light and the view:
-n = normalize(l + v), so l = 2 (n·v) n − v. Given the camera's angle of view, the view
-is a pinhole camera's instead (:func:`perspective_sphere`): a sphere off the optical axis
+n = normalize(l + v), so l = 2 (n·v) n − v. Given the camera (:class:`Pinhole`: its angle
+of view, and where known its principal point and radial distortion), the view is that
+camera's instead (:func:`perspective_sphere`): a sphere off the optical axis
 is seen obliquely, v tilts by the angle it lies off the axis, and the orthographic
 reading errs by about that much. The sphere's outline in the photos (centre
 and radius, in pixels) is given; in each photo the highlight is found as the brightest
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -63,59 +65,123 @@ def sphere_normals(size: tuple[int, int], centre: tuple[float, float], radius: f
     return torch.stack([nx, ny, nz]), mask
 
 
-def _pinhole_rays(x: Tensor, y: Tensor, size: tuple[int, int], fov_deg: float) -> Tensor:
-    """Unit rays (3, ...) from a pinhole camera through pixel positions x (column) and y
-    (row): the camera looks down −z, +y toward the image's top, its principal point the
-    image's centre and ``fov_deg`` its angle of view across the width."""
-    h, w = size
-    f = (w / 2) / math.tan(math.radians(fov_deg) / 2)
-    d = torch.stack([x - (w - 1) / 2, -(y - (h - 1) / 2), torch.full_like(x, -f)])
-    return d / d.norm(dim=0, keepdim=True)
+@dataclass(frozen=True)
+class Pinhole:
+    """The camera of the photos as a pinhole with one term of radial distortion.
+
+    ``fov_deg``: the angle of view across the photos' width (of the undistorted image),
+    which sets the focal length f = (W/2) / tan(fov/2) in pixels; ``principal``: the
+    principal point (column, row; pixels), None for the photo's centre; ``k1``: radial
+    distortion as OpenCV's first coefficient, a point at normalised distance r from the
+    principal point in the ideal pinhole's image lies at r (1 + k1 r²) in the photo
+    (k1 < 0: barrel). The camera looks down −z, +y toward the image's top."""
+
+    fov_deg: float
+    principal: tuple[float, float] | None = None
+    k1: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.fov_deg, (int, float)) and 0 < self.fov_deg < 180):
+            raise MatscanError(f"--fov: {self.fov_deg!r} must be an angle of view between 0 and 180 degrees")
+        if not (isinstance(self.k1, (int, float)) and math.isfinite(self.k1)):
+            raise MatscanError(f"--k1: {self.k1!r} must be a finite number")
+        if self.principal is not None and not all(math.isfinite(float(v)) for v in self.principal):
+            raise MatscanError(f"--principal-point: {self.principal!r} must be two finite numbers of pixels")
+
+    def focal(self, size: tuple[int, int]) -> float:
+        return (size[1] / 2) / math.tan(math.radians(self.fov_deg) / 2)
+
+    def centre(self, size: tuple[int, int]) -> tuple[float, float]:
+        h, w = size
+        return self.principal if self.principal is not None else ((w - 1) / 2, (h - 1) / 2)
+
+    def rays(self, x: Tensor, y: Tensor, size: tuple[int, int]) -> Tensor:
+        """Unit rays (3, ...) through pixel positions x (column) and y (row) of the photo:
+        each position undistorted (Newton's method on r (1 + k1 r²) = r_d) and seen
+        through the pinhole."""
+        f, (cx, cy) = self.focal(size), self.centre(size)
+        xd, yd = (x - cx) / f, -(y - cy) / f
+        if self.k1 != 0:
+            rd = (xd * xd + yd * yd).sqrt()
+            r = rd.clone()
+            for _ in range(30):
+                slope = 1 + 3 * self.k1 * r * r
+                if bool((slope <= 0).any()):
+                    break
+                r = r - (r * (1 + self.k1 * r * r) - rd) / slope
+            bad = (1 + 3 * self.k1 * r * r <= 0) | ((r * (1 + self.k1 * r * r) - rd).abs() > 1e-7 * (1 + rd))
+            if bool(bad.any()):
+                raise MatscanError(
+                    f"--k1: {self.k1:g} folds the image over within the photo (the distortion is not one-to-one "
+                    "there); check its sign and size"
+                )
+            scale = torch.where(rd > 0, r / rd.clamp_min(1e-300), torch.ones_like(rd))
+            xd, yd = xd * scale, yd * scale
+        d = torch.stack([xd, yd, -torch.ones_like(xd)])
+        return d / d.norm(dim=0, keepdim=True)
+
+    def pixel(self, xu: float, yu: float, size: tuple[int, int]) -> tuple[float, float]:
+        """Where the ray (xu, yu, −1) (the ideal pinhole's normalised point) lies in the
+        photo: (column, row), distorted."""
+        f, (cx, cy) = self.focal(size), self.centre(size)
+        k = 1 + self.k1 * (xu * xu + yu * yu)
+        return cx + f * xu * k, cy - f * yu * k
 
 
-def cone_outline(axis: Tensor, half: float, size: tuple[int, int], fov_deg: float) -> tuple[float, float, float]:
+def as_lens(lens: float | Pinhole | None) -> Pinhole | None:
+    """A camera given as its angle of view alone (degrees) is a :class:`Pinhole` with the
+    principal point at the centre and no distortion."""
+    return lens if lens is None or isinstance(lens, Pinhole) else Pinhole(float(lens))
+
+
+def _pinhole_rays(x: Tensor, y: Tensor, size: tuple[int, int], lens: Pinhole) -> Tensor:
+    """Unit rays (3, ...) from the camera through pixel positions x (column) and y (row)."""
+    return lens.rays(x, y, size)
+
+
+def cone_outline(axis: Tensor, half: float, size: tuple[int, int], lens: float | Pinhole) -> tuple[float, float, float]:
     """The outline (centre column, centre row, radius; pixels) that :func:`perspective_sphere`
     reads for a sphere whose tangent cone from the camera has unit ``axis`` and half-angle
     ``half`` (radians): the circle through the silhouette's points nearest and farthest
-    from the principal point (closed form)."""
-    h, w = size
-    f = (w / 2) / math.tan(math.radians(fov_deg) / 2)
+    from the principal point (closed form; radial distortion keeps them on that line)."""
+    lens = as_lens(lens)
     a = axis.double() / axis.double().norm()
     radial = torch.stack([a[0], a[1]])
     radial = radial / radial.norm() if float(radial.norm()) > 1e-12 else torch.tensor([1.0, 0.0], dtype=torch.float64)
     tilt = math.acos(max(-1.0, min(1.0, -float(a[2]))))
     pts = []
     for t in (tilt - half, tilt + half):  # the cone's edges in the plane of its axis and the optical axis
-        r = f * math.tan(t)
-        pts.append(((w - 1) / 2 + r * float(radial[0]), (h - 1) / 2 - r * float(radial[1])))
+        r = math.tan(t)
+        pts.append(lens.pixel(r * float(radial[0]), r * float(radial[1]), size))
     return (pts[0][0] + pts[1][0]) / 2, (pts[0][1] + pts[1][1]) / 2, math.dist(pts[0], pts[1]) / 2
 
 
 def perspective_sphere(
-    size: tuple[int, int], centre: tuple[float, float], radius: float, fov_deg: float
+    size: tuple[int, int], centre: tuple[float, float], radius: float, lens: float | Pinhole
 ) -> tuple[Tensor, Tensor, Tensor]:
     """A sphere seen through a pinhole camera: normals (3, H, W), the unit directions
     toward the camera (3, H, W) and the mask (H, W) of the pixels that see the sphere no
     nearer its rim than ``INNER`` of the orthographic case does (n·v above √(1 − INNER²)).
 
-    The camera looks down −z from the origin with +y toward the image's top; its principal
-    point is the image's centre and ``fov_deg`` its angle of view across the image's width.
-    The outline (``centre``, ``radius``, pixels) is taken as the circle through the two
+    The camera (``lens``: a :class:`Pinhole`, or its angle of view across the image's
+    width, the principal point then at the centre) looks down −z from the origin with +y
+    toward the image's top. The outline (``centre``, ``radius``, pixels) is taken as the circle through the two
     points of the silhouette nearest and farthest from the principal point (a sphere off
     the axis projects to an ellipse stretched along that line): the sphere's axis is the
     bisector of their rays and its angular radius half the angle between them; the
     sphere's size is immaterial (radius 1 here)."""
     h, w = size
+    lens = as_lens(lens)
     c = torch.tensor(centre, dtype=torch.float64)
-    off = c - torch.tensor([(w - 1) / 2, (h - 1) / 2], dtype=torch.float64)
+    off = c - torch.tensor(lens.centre(size), dtype=torch.float64)
     u = off / off.norm() if float(off.norm()) > 1e-9 else torch.tensor([1.0, 0.0], dtype=torch.float64)
     ends = torch.stack([c - radius * u, c + radius * u])  # (2, 2): x, y
-    d1, d2 = _pinhole_rays(ends[:, 0], ends[:, 1], size, fov_deg).T
+    d1, d2 = _pinhole_rays(ends[:, 0], ends[:, 1], size, lens).T
     axis = (d1 + d2) / (d1 + d2).norm()
     half = math.acos(max(-1.0, min(1.0, float(d1 @ d2)))) / 2
     s = axis / math.sin(half)  # the sphere's centre (radius 1) from the camera
     ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
-    d = _pinhole_rays(xs, ys, size, fov_deg)  # (3, H, W)
+    d = _pinhole_rays(xs, ys, size, lens)  # (3, H, W)
     b = -(d * s.view(3, 1, 1)).sum(0)
     disc = b * b - (float(s @ s) - 1)
     t = -b - disc.clamp_min(0).sqrt()
@@ -126,21 +192,27 @@ def perspective_sphere(
 
 
 def highlight_direction(
-    image: Tensor, centre: tuple[float, float], radius: float, where: str = "photo", fov_deg: float | None = None
+    image: Tensor,
+    centre: tuple[float, float],
+    radius: float,
+    where: str = "photo",
+    lens: float | Pinhole | None = None,
 ) -> Tensor:
     """The light direction (3,) shown by the highlight on the sphere in a linear image
-    (H, W) or (C, H, W) (module doc); with ``fov_deg`` the photo is a pinhole camera's of
-    that angle of view across its width (:func:`perspective_sphere`), else orthographic."""
+    (H, W) or (C, H, W) (module doc); with ``lens`` (a :class:`Pinhole`, or its angle of
+    view across the width) the photo is that camera's (:func:`perspective_sphere`), else
+    orthographic."""
     grey = image.double().mean(0) if image.ndim == 3 else image.double()
     sphere = f"the sphere ({centre[0]:g}, {centre[1]:g}, r {radius:g})"
-    if fov_deg is None:
+    lens = as_lens(lens)
+    if lens is None:
         normals, mask = sphere_normals(tuple(grey.shape), centre, radius)
     else:
-        normals, views, mask = perspective_sphere(tuple(grey.shape), centre, radius, fov_deg)
+        normals, views, mask = perspective_sphere(tuple(grey.shape), centre, radius, lens)
     weights = highlight_weights(grey, mask, where, sphere)
     n = (normals * weights).sum(dim=(1, 2))
     n = n / n.norm()
-    if fov_deg is None:
+    if lens is None:
         v = torch.tensor([0.0, 0.0, 1.0], dtype=n.dtype)
     else:  # the view at the highlight: the weighted mean of the pixels' views there
         v = (views * weights).sum(dim=(1, 2))
@@ -180,19 +252,18 @@ def directions_from_sphere(
     centre: tuple[float, float],
     radius: float,
     encoding: str = "srgb",
-    fov_deg: float | None = None,
+    lens: float | Pinhole | None = None,
 ) -> list[tuple[float, float, float]]:
     """Light directions (matscan's frame) from the sphere's highlight in each photo; with
-    ``fov_deg`` (the camera's angle of view across the photos' width) the view is a
-    pinhole camera's, else orthographic."""
+    ``lens`` (a :class:`Pinhole`, or the camera's angle of view across the photos'
+    width) the view is a pinhole camera's, else orthographic."""
     if not (radius > 0 and math.isfinite(radius)):
         raise MatscanError(f"--sphere: radius {radius!r} must be a positive number of pixels")
-    if fov_deg is not None and not 0 < fov_deg < 180:
-        raise MatscanError(f"--fov: {fov_deg!r} must be an angle of view between 0 and 180 degrees")
+    lens = as_lens(lens)
     out = []
     for path in photos:
         linear = _read_linear(path, encoding)
-        d = highlight_direction(linear, centre, radius, str(path), fov_deg)
+        d = highlight_direction(linear, centre, radius, str(path), lens)
         if float(d[2]) <= 0:
             raise input_error(path, "the highlight is at the sphere's outline: the light is at or below the horizon")
         out.append((float(d[0]), float(d[1]), float(d[2])))
@@ -223,13 +294,18 @@ OUTLINE_RAYS = 720
 
 
 def find_sphere(
-    photos: Sequence[str | Path] | Tensor, encoding: str = "srgb", where: str = "photos", fov_deg: float | None = None
+    photos: Sequence[str | Path] | Tensor,
+    encoding: str = "srgb",
+    where: str = "photos",
+    lens: float | Pinhole | None = None,
 ) -> tuple[float, float, float]:
     """The outline (centre column, centre row, radius; pixels) of a mirror-like sphere
     seen in photos of one scene under different lights: file paths, or linear images
     (N, C, H, W). Raises a one-line error when no candidate passes (module doc). With
-    ``fov_deg`` the outline is fitted as a pinhole camera sees a sphere (an ellipse,
-    :func:`perspective_sphere`) and given as that function reads it."""
+    ``lens`` (a :class:`Pinhole`, or its angle of view) the outline is fitted as that
+    camera sees a sphere (an ellipse, :func:`perspective_sphere`) and given as that
+    function reads it."""
+    lens = as_lens(lens)
     n = len(photos)
     if n < 3:
         raise MatscanError(f"{where}: finding the sphere needs three photos or more; give --sphere CX,CY,R")
@@ -262,7 +338,7 @@ def find_sphere(
     _, cx, cy, r = best
     # from reduced pixels (block means) to the full-size pixel grid: centre x' = (x + 0.5)·f − 0.5
     centre = ((cx + 0.5) * factor - 0.5, (cy + 0.5) * factor - 0.5)
-    return _fit_outline(mean, centre, r * factor, where, fov_deg)
+    return _fit_outline(mean, centre, r * factor, where, lens)
 
 
 def _circle_candidates(mean: Tensor, most: int = 24) -> list[tuple[float, float, float]]:
@@ -315,11 +391,11 @@ def _highlight_share(stack: Tensor, centre: tuple[float, float], radius: float) 
 
 
 def _fit_outline(
-    mean: Tensor, centre: tuple[float, float], radius: float, where: str, fov_deg: float | None = None
+    mean: Tensor, centre: tuple[float, float], radius: float, where: str, lens: Pinhole | None = None
 ) -> tuple[float, float, float]:
     """The circle through the steepest step of ``mean`` along rays from an approximate
     centre (within ±15% of the radius), fitted by least squares with outlying rays
-    dropped; twice, from the first fit's centre. With ``fov_deg``, the sphere's tangent
+    dropped; twice, from the first fit's centre. With ``lens``, the sphere's tangent
     cone through those points instead (:func:`_cone_lsq`), given as :func:`cone_outline`."""
     h, w = mean.shape
     img = mean.float()[None, None]
@@ -347,11 +423,11 @@ def _fit_outline(
         for _ in range(3):
             if int(keep.sum()) < OUTLINE_RAYS // 4:
                 raise MatscanError(f"{where}: the sphere's outline is too faint to fit; give --sphere CX,CY,R")
-            if fov_deg is None:
+            if lens is None:
                 cx, cy, r = _circle_lsq(px[keep], py[keep])
                 resid = ((px - cx) ** 2 + (py - cy) ** 2).sqrt() - r
             else:
-                cx, cy, r, resid = _cone_lsq(px, py, keep, (h, w), fov_deg)
+                cx, cy, r, resid = _cone_lsq(px, py, keep, (h, w), lens)
             spread = float(resid[keep].abs().median()) * 1.4826 + 0.05
             keep = keep & (resid.abs() < 3 * spread)
     if not (0 <= cx < w and 0 <= cy < h):
@@ -368,19 +444,18 @@ def _circle_lsq(x: Tensor, y: Tensor) -> tuple[float, float, float]:
 
 
 def _cone_lsq(
-    x: Tensor, y: Tensor, keep: Tensor, size: tuple[int, int], fov_deg: float
+    x: Tensor, y: Tensor, keep: Tensor, size: tuple[int, int], lens: Pinhole
 ) -> tuple[float, float, float, Tensor]:
     """The cone of rays tangent to a sphere, through outline points seen by a pinhole
     camera: every ray d on it makes the same angle α with the axis a, d · a/cos α = 1,
     linear in q = a / cos α (least squares over the ``keep`` points). Returns the
     :func:`cone_outline` circle and each point's residual, in pixels (its angle from the
     cone times the focal length)."""
-    d = _pinhole_rays(x, y, size, fov_deg).T  # (N, 3)
+    d = _pinhole_rays(x, y, size, lens).T  # (N, 3)
     q = torch.linalg.lstsq(d[keep], torch.ones(int(keep.sum()), 1, dtype=d.dtype)).solution[:, 0]
     axis, half = q / q.norm(), math.acos(min(1.0, 1 / float(q.norm())))
-    f = (size[1] / 2) / math.tan(math.radians(fov_deg) / 2)
-    resid = ((d @ axis).clamp(-1, 1).acos() - half) * f
-    return (*cone_outline(axis, half, size, fov_deg), resid)
+    resid = ((d @ axis).clamp(-1, 1).acos() - half) * lens.focal(size)
+    return (*cone_outline(axis, half, size, lens), resid)
 
 
 # --- near lights: positions from two (or more) spheres at known places ---------------------
