@@ -28,7 +28,13 @@ minute): the dome24 networks, each WEIGHTS given (several any-rig networks side 
 same photos), and the photometric-stereo estimate that ``--ps-skip`` networks start from
 (its albedo and normals, specular 0.04, roughness 0.5).
 
+With ``--miscalibration DEG,REL`` the unseen dome's photos are taken under lights other
+than the ones its captures name (:func:`matscan.anyrig.miscalibrated`: each turned by
+|N(0, DEG)| degrees, scaled by 1 + N(0, REL)), as a handheld light or a dome whose LEDs
+are not where its file says makes them.
+
 Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
+[--miscalibration 3,0.1]
 (``WEIGHTS SIZE`` also works; ``WEIGHTS:raw`` scores a checkpoint's raw weights where it
 also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` scores)
 """
@@ -41,7 +47,7 @@ import time
 
 import torch
 
-from matscan.anyrig import load, photo_input, predict_capture, ps_estimate
+from matscan.anyrig import load, miscalibrated, photo_input, predict_capture, ps_estimate
 from matscan.capture import Capture
 from matscan.capture.virtual import CameraModel, simulate_images
 from matscan.evaluate import evaluation_lights
@@ -60,9 +66,15 @@ sys.path.insert(0, "bench")
 from rti_dome import TEST, TRAIN, rti_rig  # noqa: E402
 
 
-def capture_of(maps, rig, indices, seed) -> Capture:
+def capture_of(maps, rig, indices, seed, off: tuple[float, float] = (0.0, 0.0)) -> Capture:
+    """The rig's photos of ``maps`` under lights ``indices``; with ``off`` (degrees,
+    relative intensity) taken under :func:`matscan.anyrig.miscalibrated` lights (drawn
+    from the seed and the count) while the capture names the rig's."""
     lights = rig.light_set(indices)
-    photos = simulate_images(maps, lights, rig.field_mm, CameraModel(read_noise=0.002), seed=seed)
+    shot = lights
+    if any(off):
+        shot = miscalibrated(lights, torch.Generator().manual_seed(1000 * seed + len(indices)), *off)
+    photos = simulate_images(maps, shot, rig.field_mm, CameraModel(read_noise=0.002), seed=seed)
     return Capture(
         rig,
         rig.field_mm,
@@ -132,7 +144,7 @@ def load_spec(spec: str):
     return load(spec)
 
 
-def networks_only(paths: list[str], size: int) -> None:
+def networks_only(paths: list[str], size: int, off: tuple[float, float] = (0.0, 0.0)) -> None:
     nets, _ = load_model("default")
     anyrigs = [(path, load_spec(path)) for path in paths]
     materials = [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
@@ -144,7 +156,7 @@ def networks_only(paths: list[str], size: int) -> None:
         cases = [("dome24", c, dome, dome.subset(c), evaluation_lights(dome)) for c in ("1", "2", "3", "6")]
         cases += [("RTI dome (unseen)", str(c), rti, spread(len(TRAIN), c), test.light_set()) for c in (1, 2, 3, 6, 12)]
         for rig_name, count, rig, indices, lights in cases:
-            cap = capture_of(maps, rig, indices, seed=i)
+            cap = capture_of(maps, rig, indices, seed=i, off=off if rig is rti else (0.0, 0.0))
             got = [("photometric stereo", photometric_stereo(cap))]
             if rig_name == "dome24":
                 got.append(("dome24 networks", predict_maps(nets, cap)))
@@ -164,11 +176,19 @@ def main() -> None:
     parser.add_argument("weights", nargs="+")
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--networks-only", dest="networks_only", action="store_true")
+    parser.add_argument(
+        "--miscalibration",
+        default="0,0",
+        metavar="DEG,REL",
+        help="the unseen dome's photos taken under lights turned by |N(0, DEG)| degrees and scaled by 1 + N(0, REL), "
+        "the capture naming the rig's (rti-icon and dome24 unchanged)",
+    )
     args = parser.parse_args()
+    off = tuple(float(v) for v in args.miscalibration.split(","))
     if len(args.weights) > 1 and args.weights[-1].isdigit():  # the older form: WEIGHTS SIZE
         args.size = int(args.weights.pop())
     if args.networks_only:
-        networks_only(args.weights, args.size)
+        networks_only(args.weights, args.size, off)
         return
     weights, size = args.weights[0], args.size
     anyrig = load_spec(weights)
@@ -193,7 +213,7 @@ def main() -> None:
                 scores(refined(start, cap, FLAT_START_PRIOR), maps, lights, dome.field_mm)
             )
         for count in (1, 2, 3, 6, 12):
-            cap = capture_of(maps, rti, spread(len(TRAIN), count), seed=i)
+            cap = capture_of(maps, rti, spread(len(TRAIN), count), seed=i, off=off)
             lights = test.light_set()
             start = MapSet(**predict_capture(anyrig, cap))
             rows.setdefault(("RTI dome (unseen)", str(count), "any-rig network"), []).append(

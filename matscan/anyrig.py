@@ -37,7 +37,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -313,6 +313,31 @@ def random_lights(g: torch.Generator, count: int, reference_mm: float = 225.0) -
     return lights, height
 
 
+def miscalibrated(lights: LightSet, g: torch.Generator, degrees: float, intensity: float) -> LightSet:
+    """The lights as they really were where the rig file says ``lights``: each one's place
+    (its direction, or its position about the sample's centre) turned by an angle drawn
+    from |N(0, ``degrees``)| about a random axis, and its intensity scaled by
+    1 + N(0, ``intensity``) (at least 0.2): what a handheld light, directions read off a
+    sphere, or LEDs of unequal brightness do to a capture."""
+    n = len(lights)
+    pos = lights.position.double()
+    d = pos / pos.norm(dim=-1, keepdim=True)
+    a = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    a = a - (a * d).sum(-1, keepdim=True) * d
+    a = a / a.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    t = torch.deg2rad(torch.randn(n, 1, generator=g, dtype=torch.float64).abs() * degrees)
+    turned = d * t.cos() + a * t.sin()
+    turned[:, 2] = turned[:, 2].clamp_min(0.02)  # never below the horizon
+    turned = turned / turned.norm(dim=-1, keepdim=True)
+    scale = (1 + intensity * torch.randn(n, 1, generator=g)).clamp_min(0.2)
+    return replace(
+        lights,
+        position=(turned * pos.norm(dim=-1, keepdim=True)).to(lights.position.dtype),
+        axis=-turned.to(lights.axis.dtype),
+        intensity=lights.intensity * scale,
+    )
+
+
 def sample(
     g: torch.Generator,
     size: int,
@@ -321,13 +346,16 @@ def sample(
     library: Sequence[MapSet] = (),
     library_prob: float = 0.5,
     library_metal_prob: float = 0.0,
+    miscalibration: tuple[float, float] = (0.0, 0.0),
 ) -> dict[str, Tensor]:
     """One training sample: a material (a crop of a 120 mm field) photographed under
     ``photos`` random lights of a random rig, through the camera model. The material is
     procedural (``prior``) or, with probability ``library_prob`` when ``library`` is given,
     a random crop of one of its map sets, metallized (:func:`matscan.data.metallize`)
-    with probability ``library_metal_prob``. Without a library the draws are those of
-    every earlier run."""
+    with probability ``library_metal_prob``. With ``miscalibration`` (degrees, intensity)
+    the photos are taken under :func:`miscalibrated` lights while the network is told the
+    drawn ones. Without a library or miscalibration the draws are those of every earlier
+    run."""
     from matscan.capture.virtual import CameraModel, apply_camera
     from matscan.data import metallize, random_crop
     from matscan.materials.procedural import random_material
@@ -347,8 +375,9 @@ def sample(
     )
     points = surface_points((120.0, 120.0), (size, size), off, (full, full))
     lights, _ = random_lights(g, photos)
+    true = miscalibrated(lights, g, *miscalibration) if any(miscalibration) else lights
     with torch.no_grad():
-        radiance = render_maps(maps, lights, (120.0, 120.0), points=points)
+        radiance = render_maps(maps, true, (120.0, 120.0), points=points)
     exposure = 1 / max(float(radiance.quantile(0.99)), 0.05) * float(0.3 + 0.6 * torch.rand((), generator=g))
     srgb = bool(torch.rand((), generator=g) < 0.7)
     camera = CameraModel(read_noise=0.002, encoding="srgb" if srgb else "linear", bits=8 if srgb else 16)
@@ -382,6 +411,10 @@ class TrainAnyRig:
     # the weights' exponential moving average kept beside them, decay per step (0: none);
     # it starts from the checkpoint's weights where the checkpoint has no average yet
     ema: float = 0.0
+    # photos taken under lights other than the ones the network is told (miscalibrated):
+    # each light's place off by |N(0, degrees)|, its intensity by N(0, intensity)
+    miscal_degrees: float = 0.0
+    miscal_intensity: float = 0.0
 
 
 CHECKPOINT = "checkpoint.safetensors"
@@ -405,7 +438,17 @@ def read_library(paths: Iterable[str | Path]) -> list[MapSet]:
 def _batch(g: torch.Generator, cfg: TrainAnyRig, library: Sequence[MapSet] = ()) -> dict[str, Tensor]:
     k = int(torch.randint(cfg.min_photos, cfg.max_photos + 1, (), generator=g))
     items = [
-        sample(g, cfg.size, k, cfg.prior, library, cfg.library_prob, cfg.library_metal_prob) for _ in range(cfg.batch)
+        sample(
+            g,
+            cfg.size,
+            k,
+            cfg.prior,
+            library,
+            cfg.library_prob,
+            cfg.library_metal_prob,
+            (cfg.miscal_degrees, cfg.miscal_intensity),
+        )
+        for _ in range(cfg.batch)
     ]
     return {key: torch.stack([it[key] for it in items]) for key in items[0]}
 
@@ -431,6 +474,11 @@ def train(
     check_prior(cfg.prior)
     if not 0 <= cfg.ema < 1:
         raise MatscanError(f"--ema: {cfg.ema!r} must be a decay per step in [0, 1)")
+    if not 0 <= cfg.miscal_degrees <= 45 or not 0 <= cfg.miscal_intensity <= 1:
+        raise MatscanError(
+            f"--miscalibration: {cfg.miscal_degrees!r}, {cfg.miscal_intensity!r} must be degrees in [0, 45] "
+            "and a relative intensity in [0, 1]"
+        )
     library = read_library(cfg.library)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -547,6 +547,7 @@ def cmd_batch(args: argparse.Namespace) -> str:
 def cmd_train_anyrig(args: argparse.Namespace) -> str:
     from matscan.anyrig import AnyRigConfig, TrainAnyRig, train
 
+    miscal = _vector(args.miscalibration, 2, "--miscalibration")
     cfg = TrainAnyRig(
         size=args.size,
         batch=args.batch,
@@ -559,6 +560,8 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
         library_prob=args.library_prob,
         library_metal_prob=args.library_metal_prob,
         ema=args.ema,
+        miscal_degrees=miscal[0],
+        miscal_intensity=miscal[1],
     )
     net_cfg = None if args.ps_skip is None else AnyRigConfig(ps_skip=args.ps_skip)
     result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
@@ -1091,6 +1094,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DECAY",
         help="also keep the weights' moving average, this decay per step (0.999: about the last 1,000 steps), "
         "which the checkpoint's users load (default 0: none)",
+    )
+    p.add_argument(
+        "--miscalibration",
+        default="0,0",
+        metavar="DEG,REL",
+        help="photograph each sample under lights other than those the network is told: each light's place off "
+        "by |N(0, DEG)| degrees and its intensity by N(0, REL), as on real domes and handheld captures "
+        "(default 0,0)",
     )
     p.add_argument("--device", default="auto", help="auto (CUDA when there is one), cpu or cuda")
     p.add_argument(

@@ -351,3 +351,42 @@ def test_the_moving_average_is_the_mean_of_the_weights_it_has_seen(tmp_path):
     assert int(load_file(run / "checkpoint.safetensors")["step"]) == 3
     assert main(["train-anyrig", "--out", str(tmp_path / "bad"), "--max-steps", "1", "--ema", "1", *small]) == 2
     assert not (tmp_path / "bad").exists()
+
+
+def test_miscalibrated_lights_are_off_by_the_drawn_angle_and_brightness():
+    """Each light's place turns by |N(0, σ)| (the half-normal's mean is σ √(2/π)) at its own
+    distance, its intensity scales by 1 + N(0, s); none is moved with σ = s = 0."""
+    from matscan.anyrig import miscalibrated
+
+    g = torch.Generator().manual_seed(4)
+    lights, _ = random_lights(g, 4000)
+    same = miscalibrated(lights, torch.Generator().manual_seed(1), 0.0, 0.0)
+    torch.testing.assert_close(same.position, lights.position)
+    torch.testing.assert_close(same.intensity, lights.intensity)
+    off = miscalibrated(lights, torch.Generator().manual_seed(1), 3.0, 0.1)
+    a, b = lights.position.double(), off.position.double()
+    torch.testing.assert_close(b.norm(dim=-1), a.norm(dim=-1), rtol=1e-5, atol=0)
+    cos = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1))
+    angle = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
+    assert abs(float(angle.mean()) - 3.0 * math.sqrt(2 / math.pi)) < 0.1
+    ratio = off.intensity[:, 0] / lights.intensity[:, 0]
+    assert abs(float(ratio.mean()) - 1) < 0.01 and abs(float(ratio.std()) - 0.1) < 0.01
+    torch.testing.assert_close(off.axis.double(), -b / b.norm(dim=-1, keepdim=True), atol=1e-6, rtol=0)
+
+
+def test_train_anyrig_trains_on_miscalibrated_captures_and_refuses_wild_ones(tmp_path, capsys):
+    import json
+
+    from matscan.cli import main
+
+    small = ["--size", "16", "--batch", "2", "--max-photos", "2", "--max-steps", "2"]
+    out = tmp_path / "run"
+    assert main(["train-anyrig", "--out", str(out), "--miscalibration", "3,0.1", *small]) == 0
+    cfg = json.loads((out / "config.json").read_text())["train"]
+    assert (cfg["miscal_degrees"], cfg["miscal_intensity"]) == (3.0, 0.1)
+    capsys.readouterr()
+    for bad in ("90,0.1", "3", "3,nan"):
+        assert main(["train-anyrig", "--out", str(tmp_path / "bad"), "--miscalibration", bad, *small]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "--miscalibration" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "bad").exists()
