@@ -938,7 +938,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="DEG",
         help="the camera's angle of view across the photos' width, degrees (a 50 mm lens on a 36 mm wide sensor: "
-        "39.6); the sphere is then seen through a pinhole centred on the photo, not from straight above "
+        "39.6); the sphere is then seen through a pinhole (centred on the photo unless --principal-point), not from "
+        "straight above "
         "(default: orthographic, as RTI software assumes)",
     )
     q.add_argument(
