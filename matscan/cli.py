@@ -70,7 +70,7 @@ finite_float = _number(float)
 
 #: Options whose value is a comma-separated vector that may start with a minus sign
 #: (argparse would take "-50,0,150" for an option).
-VECTOR_OPTIONS = ("--light", "--corners", "--sphere")
+VECTOR_OPTIONS = ("--light", "--corners", "--sphere", "--principal-point", "--distortion")
 
 
 def _join_vectors(argv: Sequence[str]) -> list[str]:
@@ -373,7 +373,7 @@ def cmd_rig_to_lp(args: argparse.Namespace) -> str:
 def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
     from matscan.atomic import write_text
     from matscan.capture.rti import LightFile, lp_text, rig_from_lp
-    from matscan.capture.sphere import Pinhole, directions_from_sphere, find_sphere
+    from matscan.capture.sphere import DISTORTION, Pinhole, directions_from_sphere, find_sphere
     from matscan.imagefile import READABLE
     from matscan.jsonfile import dumps
     from matscan.outputs import claim_output
@@ -381,9 +381,21 @@ def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
 
     given = _vector(args.sphere, 3, "--sphere") if args.sphere is not None else None
     principal = _vector(args.principal_point, 2, "--principal-point") if args.principal_point is not None else None
-    if args.fov is None and (principal is not None or args.k1 != 0):
-        raise MatscanError("--principal-point and --k1 describe a pinhole camera: give its angle of view with --fov")
-    lens = Pinhole(args.fov, principal, args.k1) if args.fov is not None else None
+    distortion = {"k1": args.k1} if args.k1 != 0 else {}
+    if args.distortion is not None:
+        if args.k1 != 0:
+            raise MatscanError("--k1 and --distortion: give k1 in one of them")
+        values = args.distortion.split(",")
+        if len(values) not in (4, 5):
+            raise MatscanError(
+                f"--distortion: {args.distortion!r} is not 4 or 5 comma-separated numbers (k1,k2,p1,p2[,k3])"
+            )
+        distortion = dict(zip(DISTORTION, _vector(args.distortion, len(values), "--distortion"), strict=False))
+    if args.fov is None and (principal is not None or distortion):
+        raise MatscanError(
+            "--principal-point, --k1 and --distortion describe a pinhole camera: give its angle of view with --fov"
+        )
+    lens = Pinhole(args.fov, principal, **distortion) if args.fov is not None else None
     folder = Path(args.folder)
     if not folder.is_dir():
         raise MatscanError(f"{folder}: is not a folder of photos")
@@ -955,6 +967,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         metavar="K",
         help="with --fov: the lens's radial distortion, OpenCV's first coefficient k1 (negative: barrel; default 0)",
+    )
+    q.add_argument(
+        "--distortion",
+        metavar="K1,K2,P1,P2[,K3]",
+        help="with --fov: the lens's distortion as OpenCV's coefficients in its order (what cv2.calibrateCamera "
+        "gives as distCoeffs; radial k1, k2, k3, tangential p1, p2; default none)",
     )
     q.add_argument("--out", required=True, help=".lp light file or rig .json to write")
     q.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)

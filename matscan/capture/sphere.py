@@ -65,28 +65,49 @@ def sphere_normals(size: tuple[int, int], centre: tuple[float, float], radius: f
     return torch.stack([nx, ny, nz]), mask
 
 
+#: OpenCV's distortion coefficients, in its order.
+DISTORTION = ("k1", "k2", "p1", "p2", "k3")
+
+
 @dataclass(frozen=True)
 class Pinhole:
-    """The camera of the photos as a pinhole with one term of radial distortion.
+    """The camera of the photos as a pinhole with OpenCV's lens distortion.
 
     ``fov_deg``: the angle of view across the photos' width (of the undistorted image),
     which sets the focal length f = (W/2) / tan(fov/2) in pixels; ``principal``: the
-    principal point (column, row; pixels), None for the photo's centre; ``k1``: radial
-    distortion as OpenCV's first coefficient, a point at normalised distance r from the
-    principal point in the ideal pinhole's image lies at r (1 + k1 r²) in the photo
-    (k1 < 0: barrel). The camera looks down −z, +y toward the image's top."""
+    principal point (column, row; pixels), None for the photo's centre; ``k1``, ``k2``,
+    ``p1``, ``p2``, ``k3``: distortion as OpenCV's coefficients in its order (what
+    ``cv2.calibrateCamera`` returns as ``distCoeffs``): a point (x, y) of the ideal
+    pinhole's image, normalised by f in OpenCV's frame (y down), with r² = x² + y², lies in
+    the photo at x (1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2 x²), and y (…) +
+    p1 (r² + 2 y²) + 2 p2 x y (k1 < 0: barrel). The camera looks down −z, +y toward the
+    image's top."""
 
     fov_deg: float
     principal: tuple[float, float] | None = None
     k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.fov_deg, (int, float)) and 0 < self.fov_deg < 180):
             raise MatscanError(f"--fov: {self.fov_deg!r} must be an angle of view between 0 and 180 degrees")
-        if not (isinstance(self.k1, (int, float)) and math.isfinite(self.k1)):
-            raise MatscanError(f"--k1: {self.k1!r} must be a finite number")
+        for name in DISTORTION:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value)):
+                raise MatscanError(f"--distortion: {name} = {value!r} must be a finite number")
         if self.principal is not None and not all(math.isfinite(float(v)) for v in self.principal):
             raise MatscanError(f"--principal-point: {self.principal!r} must be two finite numbers of pixels")
+
+    @property
+    def distorts(self) -> bool:
+        return any(getattr(self, name) != 0 for name in DISTORTION)
+
+    @property
+    def tangential(self) -> bool:
+        return self.p1 != 0 or self.p2 != 0
 
     def focal(self, size: tuple[int, int]) -> float:
         return (size[1] / 2) / math.tan(math.radians(self.fov_deg) / 2)
@@ -95,37 +116,72 @@ class Pinhole:
         h, w = size
         return self.principal if self.principal is not None else ((w - 1) / 2, (h - 1) / 2)
 
+    def distort(self, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+        """Ideal normalised points (OpenCV's frame, y down) to where the lens puts them."""
+        r2 = x * x + y * y
+        radial = 1 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        return (
+            x * radial + 2 * self.p1 * x * y + self.p2 * (r2 + 2 * x * x),
+            y * radial + self.p1 * (r2 + 2 * y * y) + 2 * self.p2 * x * y,
+        )
+
+    def _jacobian(self, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """:meth:`distort`'s Jacobian at (x, y): its entries ∂x_d/∂x, ∂x_d/∂y = ∂y_d/∂x and
+        ∂y_d/∂y (it is symmetric)."""
+        r2 = x * x + y * y
+        radial = 1 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        slope = self.k1 + r2 * (2 * self.k2 + 3 * self.k3 * r2)  # d radial / d r²
+        cross = 2 * x * y * slope + 2 * self.p1 * x + 2 * self.p2 * y
+        return (
+            radial + 2 * x * x * slope + 2 * self.p1 * y + 6 * self.p2 * x,
+            cross,
+            radial + 2 * y * y * slope + 6 * self.p1 * y + 2 * self.p2 * x,
+        )
+
+    def undistort(self, xd: Tensor, yd: Tensor) -> tuple[Tensor, Tensor]:
+        """The inverse of :meth:`distort` by Newton's method on both coordinates at once; a
+        one-line error where the distortion folds the image over (its Jacobian's
+        determinant is not positive there) or no ideal point maps to a photo's point."""
+        if not self.distorts:
+            return xd, yd
+        x, y = xd.clone(), yd.clone()
+        for _ in range(50):
+            fx, fy = self.distort(x, y)
+            ex, ey = fx - xd, fy - yd
+            if float(torch.maximum(ex.abs(), ey.abs()).max()) < 1e-14:
+                break
+            a, b, d = self._jacobian(x, y)
+            det = a * d - b * b
+            if bool((det <= 0).any()):
+                break
+            x, y = x - (d * ex - b * ey) / det, y - (a * ey - b * ex) / det
+        fx, fy = self.distort(x, y)
+        a, b, d = self._jacobian(x, y)
+        miss = torch.maximum((fx - xd).abs(), (fy - yd).abs())
+        if bool(((a * d - b * b <= 0) | (miss > 1e-7 * (1 + xd.abs() + yd.abs()))).any()):
+            raise MatscanError(
+                f"--distortion: {self.describe()} folds the image over within the photo (the distortion is not "
+                "one-to-one there); check the coefficients' signs, order (k1,k2,p1,p2,k3) and size"
+            )
+        return x, y
+
+    def describe(self) -> str:
+        return ",".join(f"{getattr(self, name):g}" for name in DISTORTION)
+
     def rays(self, x: Tensor, y: Tensor, size: tuple[int, int]) -> Tensor:
         """Unit rays (3, ...) through pixel positions x (column) and y (row) of the photo:
-        each position undistorted (Newton's method on r (1 + k1 r²) = r_d) and seen
-        through the pinhole."""
+        each position undistorted (:meth:`undistort`) and seen through the pinhole."""
         f, (cx, cy) = self.focal(size), self.centre(size)
-        xd, yd = (x - cx) / f, -(y - cy) / f
-        if self.k1 != 0:
-            rd = (xd * xd + yd * yd).sqrt()
-            r = rd.clone()
-            for _ in range(30):
-                slope = 1 + 3 * self.k1 * r * r
-                if bool((slope <= 0).any()):
-                    break
-                r = r - (r * (1 + self.k1 * r * r) - rd) / slope
-            bad = (1 + 3 * self.k1 * r * r <= 0) | ((r * (1 + self.k1 * r * r) - rd).abs() > 1e-7 * (1 + rd))
-            if bool(bad.any()):
-                raise MatscanError(
-                    f"--k1: {self.k1:g} folds the image over within the photo (the distortion is not one-to-one "
-                    "there); check its sign and size"
-                )
-            scale = torch.where(rd > 0, r / rd.clamp_min(1e-300), torch.ones_like(rd))
-            xd, yd = xd * scale, yd * scale
-        d = torch.stack([xd, yd, -torch.ones_like(xd)])
+        xu, yu = self.undistort((x - cx) / f, (y - cy) / f)
+        d = torch.stack([xu, -yu, -torch.ones_like(xu)])
         return d / d.norm(dim=0, keepdim=True)
 
     def pixel(self, xu: float, yu: float, size: tuple[int, int]) -> tuple[float, float]:
-        """Where the ray (xu, yu, −1) (the ideal pinhole's normalised point) lies in the
-        photo: (column, row), distorted."""
+        """Where the ray (xu, yu, −1) (the ideal pinhole's normalised point, y up) lies in
+        the photo: (column, row), distorted."""
         f, (cx, cy) = self.focal(size), self.centre(size)
-        k = 1 + self.k1 * (xu * xu + yu * yu)
-        return cx + f * xu * k, cy - f * yu * k
+        xd, yd = self.distort(torch.tensor(xu, dtype=torch.float64), torch.tensor(-yu, dtype=torch.float64))
+        return cx + f * float(xd), cy + f * float(yd)
 
 
 def as_lens(lens: float | Pinhole | None) -> Pinhole | None:
@@ -143,7 +199,8 @@ def cone_outline(axis: Tensor, half: float, size: tuple[int, int], lens: float |
     """The outline (centre column, centre row, radius; pixels) that :func:`perspective_sphere`
     reads for a sphere whose tangent cone from the camera has unit ``axis`` and half-angle
     ``half`` (radians): the circle through the silhouette's points nearest and farthest
-    from the principal point (closed form; radial distortion keeps them on that line)."""
+    from the principal point in the ideal pinhole's image, each put where the lens puts
+    it (closed form); :func:`outline_cone` is its inverse."""
     lens = as_lens(lens)
     a = axis.double() / axis.double().norm()
     radial = torch.stack([a[0], a[1]])
@@ -154,6 +211,36 @@ def cone_outline(axis: Tensor, half: float, size: tuple[int, int], lens: float |
         r = math.tan(t)
         pts.append(lens.pixel(r * float(radial[0]), r * float(radial[1]), size))
     return (pts[0][0] + pts[1][0]) / 2, (pts[0][1] + pts[1][1]) / 2, math.dist(pts[0], pts[1]) / 2
+
+
+def outline_cone(
+    centre: tuple[float, float], radius: float, size: tuple[int, int], lens: float | Pinhole
+) -> tuple[Tensor, float]:
+    """The sphere's tangent cone (unit axis (3,), half-angle in radians) whose outline,
+    as :func:`cone_outline` gives it, is ``centre`` and ``radius`` (pixels): the rays
+    through the circle's points nearest and farthest from the principal point, their
+    bisector and half the angle between them. Radial distortion keeps the silhouette's
+    two points on that line, so this is exact; tangential distortion moves them off it,
+    and the circle is then corrected by what :func:`cone_outline` gives back until the
+    two agree (within 1e-9 px)."""
+    lens = as_lens(lens)
+    target = torch.tensor([*centre, radius], dtype=torch.float64)
+    guess = target.clone()
+    for _ in range(20):
+        c = guess[:2]
+        off = c - torch.tensor(lens.centre(size), dtype=torch.float64)
+        u = off / off.norm() if float(off.norm()) > 1e-9 else torch.tensor([1.0, 0.0], dtype=torch.float64)
+        ends = torch.stack([c - guess[2] * u, c + guess[2] * u])  # (2, 2): x, y
+        d1, d2 = _pinhole_rays(ends[:, 0], ends[:, 1], size, lens).T
+        axis = (d1 + d2) / (d1 + d2).norm()
+        half = math.acos(max(-1.0, min(1.0, float(d1 @ d2)))) / 2
+        if not lens.tangential:
+            break
+        miss = target - torch.tensor(cone_outline(axis, half, size, lens), dtype=torch.float64)
+        if float(miss.abs().max()) < 1e-9:
+            break
+        guess = guess + miss
+    return axis, half
 
 
 def perspective_sphere(
@@ -168,17 +255,11 @@ def perspective_sphere(
     toward the image's top. The outline (``centre``, ``radius``, pixels) is taken as the circle through the two
     points of the silhouette nearest and farthest from the principal point (a sphere off
     the axis projects to an ellipse stretched along that line): the sphere's axis is the
-    bisector of their rays and its angular radius half the angle between them; the
-    sphere's size is immaterial (radius 1 here)."""
+    bisector of their rays and its angular radius half the angle between them
+    (:func:`outline_cone`); the sphere's size is immaterial (radius 1 here)."""
     h, w = size
     lens = as_lens(lens)
-    c = torch.tensor(centre, dtype=torch.float64)
-    off = c - torch.tensor(lens.centre(size), dtype=torch.float64)
-    u = off / off.norm() if float(off.norm()) > 1e-9 else torch.tensor([1.0, 0.0], dtype=torch.float64)
-    ends = torch.stack([c - radius * u, c + radius * u])  # (2, 2): x, y
-    d1, d2 = _pinhole_rays(ends[:, 0], ends[:, 1], size, lens).T
-    axis = (d1 + d2) / (d1 + d2).norm()
-    half = math.acos(max(-1.0, min(1.0, float(d1 @ d2)))) / 2
+    axis, half = outline_cone(centre, radius, size, lens)
     s = axis / math.sin(half)  # the sphere's centre (radius 1) from the camera
     ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     d = _pinhole_rays(xs, ys, size, lens)  # (3, H, W)
