@@ -70,7 +70,7 @@ finite_float = _number(float)
 
 #: Options whose value is a comma-separated vector that may start with a minus sign
 #: (argparse would take "-50,0,150" for an option).
-VECTOR_OPTIONS = ("--light", "--corners", "--sphere", "--principal-point", "--distortion")
+VECTOR_OPTIONS = ("--light", "--corners", "--sphere", "--principal-point", "--distortion", "--dome-centre")
 
 
 def _join_vectors(argv: Sequence[str]) -> list[str]:
@@ -436,12 +436,24 @@ def cmd_rig_from_spheres(args: argparse.Namespace) -> str:
         if r <= 0:
             raise MatscanError(f"--sphere: radius {r:g} must be positive (mm)")
         spheres.append(((x, y, z), r))
+    dome = None
+    if args.dome_radius is not None:
+        centre = _vector(args.dome_centre, 3, "--dome-centre") if args.dome_centre is not None else (0.0, 0.0, 0.0)
+        dome = (centre, args.dome_radius)
+    elif args.dome_centre is not None:
+        raise MatscanError("--dome-centre: give the dome's radius with --dome-radius")
+    if len(spheres) < 2 and dome is None:
+        raise MatscanError(
+            "--sphere: a light's position needs two spheres or more (one gives only its direction), "
+            "or one with --dome-radius (the lights on a shell of known radius)"
+        )
     folder = capture_folder(args.capture)
     with claim_output(args.out, "rig from-spheres", capture_inputs(folder), kind="file", overwrite=args.overwrite):
-        rig, spreads = rig_from_spheres(load_capture(folder), spheres)
+        rig, spreads = rig_from_spheres(load_capture(folder), spheres, dome)
         write_text(args.out, dumps(rig_to_dict(rig), str(args.out)))
     worst = max(spreads.values(), default=0.0)
-    return f"rig from-spheres: wrote {args.out} ({len(spreads)} lights placed; rays within {worst:.2f} mm)"
+    how = "rays within" if dome is None else "on the dome; the spheres agree within"
+    return f"rig from-spheres: wrote {args.out} ({len(spreads)} lights placed; {how} {worst:.2f} mm)"
 
 
 def cmd_import_rti(args: argparse.Namespace) -> str:
@@ -983,7 +995,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.set_defaults(func=cmd_rig_from_sphere)
 
     q = rig_sub.add_parser(
-        "from-spheres", help="near-light positions from their highlights on two or more chrome spheres"
+        "from-spheres",
+        help="near-light positions from their highlights on two or more chrome spheres "
+        "(or one, on a dome of known radius)",
     )
     q.add_argument(
         "capture", metavar="CAPTURE", help="capture of the spheres under each light (capture --target sphere)"
@@ -993,7 +1007,21 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         required=True,
         metavar="X,Y,Z,R",
-        help="a sphere's centre and radius, mm, in the sample frame (give two or more)",
+        help="a sphere's centre and radius, mm, in the sample frame (give two or more, or one with --dome-radius)",
+    )
+    q.add_argument(
+        "--dome-radius",
+        dest="dome_radius",
+        type=_number(float, 0, low_open=True),
+        metavar="MM",
+        help="the lights sit on a shell of this radius (a hemispherical dome): each is placed where its highlight's "
+        "ray meets it, so one sphere suffices",
+    )
+    q.add_argument(
+        "--dome-centre",
+        dest="dome_centre",
+        metavar="X,Y,Z",
+        help="with --dome-radius: the shell's centre, mm, in the sample frame (default 0,0,0: the field's centre)",
     )
     q.add_argument("--out", required=True, help="rig .json to write (the capture's rig, lights moved)")
     q.add_argument("--overwrite", action="store_true", help="replace an existing file")

@@ -177,6 +177,48 @@ def test_one_sphere_cannot_place_a_light():
         light_position_from_spheres(traced_spheres((150.0, 60.0, 120.0)), FIELD, CAMERA, SPHERES[:1])
 
 
+def _on_dome(k: int, tangential_mm: float, radius: float = 225.0) -> tuple[float, float, float]:
+    """dome24's LED ``k`` moved ``tangential_mm`` along its shell (radius 225 mm about the
+    field's centre) in a fixed random direction, then set at ``radius`` from the centre."""
+    from matscan.rig import builtin_rig
+
+    p = torch.tensor(builtin_rig("dome24").lights[k].position_mm, dtype=torch.float64)
+    off = torch.randn(3, generator=torch.Generator().manual_seed(k), dtype=torch.float64)
+    off = off - (off @ p) / (p @ p) * p
+    q = p + off / off.norm() * tangential_mm
+    return tuple((q / q.norm() * radius).tolist())
+
+
+@pytest.mark.parametrize("k", [0, 9, 13, 22])
+def test_near_light_position_from_one_sphere_on_a_dome_of_known_radius(k):
+    """A light on a hemispherical dome (5 mm along the shell from the rig file's place),
+    one sphere: its highlight's ray meets the shell within 1 mm of the light (measured
+    0.02 to 0.64 mm over six LEDs and either sphere). A light 2 mm off the shell is placed
+    about 2 mm off: the shell is taken as exact."""
+    from matscan.capture.sphere import light_position_from_spheres
+
+    dome = ((0.0, 0.0, 0.0), 225.0)
+    light = _on_dome(k, 5.0)
+    img = traced_spheres(light, size=960)
+    for sphere in SPHERES:
+        found, spread = light_position_from_spheres(img, FIELD, CAMERA, [sphere], dome=dome)
+        assert math.dist(found, light) < 1.0 and spread == 0.0
+        assert math.hypot(*found) == pytest.approx(225.0)
+    found, spread = light_position_from_spheres(img, FIELD, CAMERA, SPHERES, dome=dome)
+    assert math.dist(found, light) < 1.0 and spread < 0.5
+    off = _on_dome(k, 5.0, radius=227.0)
+    found, _ = light_position_from_spheres(traced_spheres(off, size=960), FIELD, CAMERA, SPHERES[:1], dome=dome)
+    assert 1.5 < math.dist(found, off) < 2.5
+
+
+def test_a_sphere_outside_the_dome_is_refused():
+    from matscan.capture.sphere import light_position_from_spheres
+
+    img = traced_spheres((150.0, 60.0, 120.0))
+    with pytest.raises(MatscanError, match="outside the dome"):
+        light_position_from_spheres(img, FIELD, CAMERA, SPHERES[:1], dome=((0.0, 0.0, 0.0), 40.0))
+
+
 def test_cli_moves_the_rig_lights_to_where_the_spheres_place_them(tmp_path):
     """dome24 whose LEDs 0, 11 and 22 sit up to 5 mm off the rig file: two spheres
     photographed under each (ray traced), and `rig from-spheres` puts them back."""
@@ -198,6 +240,33 @@ def test_cli_moves_the_rig_lights_to_where_the_spheres_place_them(tmp_path):
         assert math.dist(rig.lights[k].position_mm, true[k]) > 4.0  # the rig file was that far off
     assert moved.lights[5] == rig.lights[5]  # not photographed: unchanged
     assert main([*args[:3], "--sphere", "0,0,10,5", "--out", str(tmp_path / "x.json")]) == 2  # one sphere
+
+
+def test_cli_places_the_lights_on_a_dome_from_one_sphere(tmp_path, capsys):
+    from matscan.capture.folder import write_capture
+    from matscan.rig import builtin_rig, load_rig
+
+    rig = builtin_rig("dome24")
+    true = {k: _on_dome(k, 5.0) for k in (0, 11, 22)}
+    photos = torch.stack([traced_spheres(true[k], size=960).expand(3, -1, -1) for k in true])
+    write_capture(tmp_path / "spheres", photos, rig, light_indices=list(true), encoding="linear", bits=16)
+    (x, y, z), r = SPHERES[0]
+    args = ["rig", "from-spheres", str(tmp_path / "spheres"), "--sphere", f"{x},{y},{z},{r}"]
+    out = tmp_path / "rig.json"
+    assert main([*args, "--dome-radius", "225", "--out", str(out)]) == 0
+    assert "on the dome" in capsys.readouterr().out
+    moved = load_rig(out)
+    for k, light in true.items():
+        assert math.dist(moved.lights[k].position_mm, light) < 1.0
+        assert math.dist(rig.lights[k].position_mm, light) > 4.0
+    for bad, message in (
+        (["--out", str(tmp_path / "x.json")], "or one with --dome-radius"),
+        (["--dome-centre", "0,0,-5", "--out", str(tmp_path / "x.json")], "give the dome's radius"),
+        (["--dome-radius", "30", "--out", str(tmp_path / "x.json")], "outside the dome"),
+    ):
+        assert main([*args, *bad]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x.json").exists()
 
 
 # --- finding the sphere in the photos ------------------------------------------------------

@@ -603,23 +603,62 @@ def nearest_point(rays: Sequence[tuple[Tensor, Tensor]]) -> tuple[Tensor, float]
     return x, spread
 
 
+def shell_point(origin: Tensor, direction: Tensor, centre: Sequence[float], radius: float) -> Tensor | None:
+    """Where a ray from inside a sphere (``centre``, ``radius``; mm) leaves it, None where
+    the ray starts outside it."""
+    oc = origin - torch.tensor(centre, dtype=torch.float64)
+    b = float(direction @ oc)
+    c = float(oc @ oc) - radius * radius
+    if c >= 0:
+        return None
+    return origin + (-b + math.sqrt(b * b - c)) * direction
+
+
 def light_position_from_spheres(
-    image: Tensor, field_mm, camera_mm, spheres: Sequence[tuple[Sequence[float], float]], where: str = "photo"
+    image: Tensor,
+    field_mm,
+    camera_mm,
+    spheres: Sequence[tuple[Sequence[float], float]],
+    where: str = "photo",
+    dome: tuple[Sequence[float], float] | None = None,
 ) -> tuple[tuple[float, float, float], float]:
-    """A near light's position (mm) from its highlights on two or more mirror-like spheres
-    whose centres (mm) and radii (mm) are known: the point nearest to the rays the
-    highlights send back (:func:`highlight_ray`), and the rays' mean distance from it."""
-    if len(spheres) < 2:
-        raise MatscanError("--sphere: a light's position needs two spheres or more (one gives only its direction)")
+    """A near light's position (mm) from its highlights on mirror-like spheres whose
+    centres (mm) and radii (mm) are known, and the spread of the evidence (mm). Without
+    ``dome``: two spheres or more, the point nearest to the rays the highlights send back
+    (:func:`highlight_ray`) and the rays' mean distance from it. With ``dome`` (the
+    centre and radius, mm, of the shell the lights are mounted on): one sphere or more,
+    the mean of the points where the rays meet the shell and their mean distance from it
+    (0 with one sphere)."""
+    if not spheres or (dome is None and len(spheres) < 2):
+        raise MatscanError(
+            "--sphere: a light's position needs two spheres or more (one gives only its direction), "
+            "or one with --dome-radius (the lights on a shell of known radius)"
+        )
     rays = [highlight_ray(image, field_mm, camera_mm, c, r, where) for c, r in spheres]
-    x, spread = nearest_point(rays)
+    if dome is None:
+        x, spread = nearest_point(rays)
+    else:
+        points = []
+        for (o, d), (c, _) in zip(rays, spheres, strict=True):
+            hit = shell_point(o, d, *dome)
+            if hit is None:
+                raise MatscanError(
+                    f"--dome-radius: the sphere at {list(c)} mm lies outside the dome of radius {dome[1]:g} mm "
+                    f"about {list(dome[0])} mm"
+                )
+            points.append(hit)
+        x = torch.stack(points).mean(0)
+        spread = sum(float((p - x).norm()) for p in points) / len(points)
     return (float(x[0]), float(x[1]), float(x[2])), spread
 
 
-def rig_from_spheres(capture, spheres: Sequence[tuple[Sequence[float], float]]):
+def rig_from_spheres(
+    capture, spheres: Sequence[tuple[Sequence[float], float]], dome: tuple[Sequence[float], float] | None = None
+):
     """The capture's rig with each photographed light moved to where its highlights on the
-    spheres place it (:func:`light_position_from_spheres`); lights not photographed keep
-    their place. Returns the rig and each moved light's ray spread (mm)."""
+    spheres place it (:func:`light_position_from_spheres`, with the lights on the shell
+    ``dome`` when given); lights not photographed keep their place. Returns the rig and
+    each moved light's spread (mm)."""
     import dataclasses
 
     rig = capture.rig
@@ -631,7 +670,7 @@ def rig_from_spheres(capture, spheres: Sequence[tuple[Sequence[float], float]]):
         if k is None or lights[k].directional:
             continue
         pos, spread = light_position_from_spheres(
-            capture.linear([i])[0], capture.field_mm, rig.camera.position_mm, spheres, capture.files[i]
+            capture.linear([i])[0], capture.field_mm, rig.camera.position_mm, spheres, capture.files[i], dome
         )
         lights[k] = dataclasses.replace(lights[k], position_mm=pos)
         spreads[k] = spread
