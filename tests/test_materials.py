@@ -284,3 +284,23 @@ def test_dark_glossy_is_dark_and_glossy():
         assert float(m.diffuse.max()) <= DARK_ALBEDO_MAX <= 0.05
         assert float(m.roughness.max()) <= 0.45 and float(m.roughness.min()) >= 0.03
         assert 0.04 <= float(m.specular.min()) and float(m.specular.max()) <= 0.05
+
+
+def test_prior_v5_adds_bright_glossy_coats_at_5_in_40():
+    assert {f: w for f, w in PRIORS["v5"].items() if f != "glossy_coat"} == PRIORS["v4"]
+    assert PRIORS["v5"]["glossy_coat"] / sum(PRIORS["v5"].values()) == pytest.approx(5 / 40)
+    drawn = [random_material(8, s, prior="v5")[0] for s in range(400)]
+    assert 0.08 < drawn.count("glossy_coat") / 400 < 0.17
+    assert "glossy_coat" not in PRIORS["v4"]  # a published prior never changes
+
+
+def test_glossy_coats_are_bright_smooth_dielectrics_nearly_flat_at_every_training_scale():
+    medians = []
+    for i in range(16):
+        m = generate("glossy_coat", 128, i, _training_scale(i))
+        assert 0.02 <= float(m.roughness.min()) and float(m.roughness.max()) <= 0.38
+        assert float(m.roughness.median()) <= 0.27
+        assert 0.04 <= float(m.specular.min()) and float(m.specular.max()) <= 0.05
+        assert float(m.diffuse.amax(0).median()) >= 0.06  # linear: sRGB value 0.3 at least in some channel
+        medians.append(float(_tilt_degrees(m).median()))
+    assert 0.4 <= min(medians) and max(medians) <= 4.5

@@ -1,5 +1,6 @@
 """Contact sheet of the families a material prior adds to the one before it:
-docs/procedural-materials-v2.png (v2 over v1), docs/procedural-materials-v3.png (v3 over v2).
+docs/procedural-materials-v2.png (v2 over v1), docs/procedural-materials-v3.png (v3 over v2),
+docs/procedural-materials-v5.png (v5 over v4).
 
 One row per family (:func:`new_families`; two rows when there is one), three materials a
 row (seeds 0, 1, 2, … at 256² over the dome24 field, as ``matscan synth`` draws them),
@@ -9,7 +10,7 @@ shows), under light 4 (ring 0, 22.5°: grazing, so relief casts its shading), th
 normal map ((n + 1)/2), F0 (sRGB-encoded) and roughness (grey, black = 0).
 
 Deterministic: the same PNG on every run.
-Run: .venv/bin/python tools/procedural_sheet.py PRIOR [OUT]   (PRIOR v2 or v3; OUT default as above)
+Run: .venv/bin/python tools/procedural_sheet.py PRIOR [OUT]   (PRIOR v2, v3 or v5; OUT default as above)
 """
 
 from __future__ import annotations

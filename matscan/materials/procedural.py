@@ -14,7 +14,7 @@ paper, painted, plastic, metal_brushed, metal_embossed, foil_print, mesh, lace,
 fluorescent_print; and, since prior v2, leather_embossed, weave_heavy, corrugated
 (strong relief), metallic_print, worn, varnished_wood (specular and roughness that
 vary over the surface) and dark_glossy; since prior v3, dark_relief (dark and glossy in
-deep relief).
+deep relief); since prior v5, glossy_coat (bright and glossy).
 
 Priors (``PRIORS``): :func:`random_material` draws a family by the weights of a
 prior version. "v1" (the default) holds the first fourteen families and draws, for
@@ -26,6 +26,7 @@ and most hold one specular value. "v3" adds dark_relief at 2 in 29 (7%): v2's da
 glossy surfaces all lie nearly flat. "v4" draws the same families, the dark glossy ones
 (dark_glossy 4, dark_relief 6) at 10 in 35 (29%): after 9,000 steps at v3's share a
 network still read such surfaces rougher the more lights it saw (docs/results.md).
+"v5" adds glossy_coat (bright glossy paint, glaze, plastic, laminate) at 5 in 40.
 """
 
 from __future__ import annotations
@@ -816,6 +817,36 @@ def dark_relief(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
     return _finish(size, diffuse, _dielectric_f0(g, 0.04, 0.05), rough, height, mm_per_px)
 
 
+# --- prior v5: bright and glossy -----------------------------------------------------------
+
+
+def glossy_coat(size: int, g: torch.Generator, mm_per_px: float) -> MapSet:
+    """Bright glossy surfaces, where a light's highlight is a small sharp spot on a bright
+    diffuse base and everywhere else the surface looks matte: gloss paint and enamel,
+    glazed tile, glossy plastic, laminate, photo paper and clear-coated prints. Their
+    roughness shows only in the spots and in the sheen a rougher finish would add
+    around them, which is absent.
+
+    Ranges: diffuse any colour (HSV saturation 0–0.9, value 0.3–0.95 in sRGB), a second
+    colour printed in a motif 40% of the time; F0 0.04–0.05; roughness 0.03–0.25, ±0.02
+    with the relief, and fine scratches 0.1 rougher 30% of the time. Relief: orange peel
+    or brush marks (band-limited noise, feature 0.01–0.05 of the tile) scaled so that the
+    normals' median tilt is 0.5°–4° at any scale.
+    """
+    if _u(g, 0, 1) < 0.5:
+        shape = spectral_noise(size, g, _u(g, 0.01, 0.05))
+    else:
+        shape = spectral_noise(size, g, _u(g, 0.01, 0.04), stretch=_u(g, 3, 10), angle=_u(g, 0, math.pi))
+    height = _to_median_tilt(shape, _u(g, 0.5, 4), mm_per_px)
+    colour = random_colour(g, (0.0, 0.9), (0.3, 0.95))
+    if _u(g, 0, 1) < 0.4:
+        colour = torch.lerp(colour, random_colour(g, (0.0, 0.9), (0.3, 0.95)), _print_pattern(size, g))
+    scratches = smoothstep(0.97, 1.0, 1 - spectral_noise(size, g, 0.005, stretch=30, angle=_u(g, 0, math.pi)).abs())
+    bump = shape / shape.abs().max().clamp_min(1e-9)
+    rough = _u(g, 0.03, 0.25) + 0.02 * bump + 0.1 * scratches * (_u(g, 0, 1) < 0.3)
+    return _finish(size, colour, _dielectric_f0(g, 0.04, 0.05), rough.clamp_min(0.02), height, mm_per_px)
+
+
 Generator = Callable[[int, torch.Generator, float], MapSet]
 
 GENERATORS: dict[str, Generator] = {
@@ -841,6 +872,7 @@ GENERATORS: dict[str, Generator] = {
     "varnished_wood": varnished_wood,
     "dark_glossy": dark_glossy,
     "dark_relief": dark_relief,
+    "glossy_coat": glossy_coat,
 }
 FAMILIES = tuple(GENERATORS)
 
@@ -888,9 +920,21 @@ WEIGHTS_V3: dict[str, float] = {**WEIGHTS_V2, "dark_relief": 2.0}
 #: percent), and v3's share left the networks guessing it from the light count.
 WEIGHTS_V4: dict[str, float] = {**WEIGHTS_V3, "dark_glossy": 4.0, "dark_relief": 6.0}
 
+#: Prior v5: v4's families, and bright glossy surfaces (:func:`glossy_coat`) drawn 5 times
+#: in 40 (12.5%): under v4 (where smooth bright dielectrics are a few plastics and
+#: varnished woods, about 3% of the draws) the networks read roughness 0.09–0.16 plastic
+#: and varnish as 0.6–0.75 from any number of lights (docs/results.md, "Smooth dielectrics").
+WEIGHTS_V5: dict[str, float] = {**WEIGHTS_V4, "glossy_coat": 5.0}
+
 #: The material priors :func:`random_material` draws from, by version: family → weight.
 #: A version, once published, never changes (its seeds must keep drawing the same materials).
-PRIORS: dict[str, dict[str, float]] = {"v1": WEIGHTS, "v2": WEIGHTS_V2, "v3": WEIGHTS_V3, "v4": WEIGHTS_V4}
+PRIORS: dict[str, dict[str, float]] = {
+    "v1": WEIGHTS,
+    "v2": WEIGHTS_V2,
+    "v3": WEIGHTS_V3,
+    "v4": WEIGHTS_V4,
+    "v5": WEIGHTS_V5,
+}
 
 
 def check_prior(prior: str) -> str:
