@@ -154,5 +154,5 @@ def test_prior_v2_reaches_the_samples():
     v2 = SvbrdfDataset(DataConfig(crop=16, compile=False, prior="v2"))
     assert any(not torch.equal(v1[i]["diffuse"], v2[i]["diffuse"]) for i in range(4))
     assert v2[0]["inputs"].shape == (24, 3, 16, 16)
-    with pytest.raises(MatscanError, match="prior: 'v5' is not one of v1, v2, v3, v4"):
-        DataConfig(prior="v5")
+    with pytest.raises(MatscanError, match="prior: 'v9' is not one of v1, v2, v3, v4, v5"):
+        DataConfig(prior="v9")
