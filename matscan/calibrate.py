@@ -1,5 +1,5 @@
 """Calibration (paper §3.2): a colour matrix from a ColorChecker, and per-light
-intensity scales (and optional flat fields) from a grey card.
+intensity scales (and optional flat fields and near-light positions) from a grey card.
 
 ``calibration.json`` (``matscan-calibration/1``)::
 
@@ -7,11 +7,14 @@ intensity scales (and optional flat fields) from a grey card.
      "colour_matrix": [[…], […], […]],        # linear camera RGB → linear sRGB
      "light_scales": {"0": 1.02, "1": 0.97, …},  # per rig light: photo = scale × model
      "flat_fields": {"0": "flat_00.exr", …},   # optional: per light, mean 1
+     "light_positions_mm": {"0": [x, y, z], …},  # optional: near lights' fitted places
      "grey_albedo": 0.18}
 
 A capture that names it is corrected on reading for reconstruction
 (:func:`apply_calibration`): colour matrix first, then each photo divided by its
-light's scale and flat field. Every field is checked there (errors name the file
+light's scale and flat field; lights with a fitted position
+(:func:`fit_light_positions`, ``calibrate --positions``) are moved there, each LED
+still aimed where the rig file aims it. Every field is checked there (errors name the file
 and the field); plausible-but-wrong calibrations become warnings in the capture's
 ``meta["warnings"]``. :func:`check_chart` and :func:`check_scales` give the
 warnings about a chart photo and about computed scales; :func:`calibrate` is
@@ -36,6 +39,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from matscan.capture import Capture
@@ -43,7 +47,6 @@ from matscan.capture.folder import Correction
 from matscan.color import srgb_to_linear
 from matscan.errors import MatscanError, input_error
 from matscan.jsonfile import check_file_name, check_number, check_object, check_vector, short_repr
-from matscan.materials.noise import blur
 from matscan.render import render, surface_points
 from matscan.rig import Rig
 
@@ -304,7 +307,7 @@ def check_scales(scales: Mapping[str, float], source: str = "calibration") -> li
 
 
 def _grey_scale(photo: Tensor, model: Tensor, saturated: Tensor, k: int) -> float:
-    """The scale of light ``k`` from its grey-card photo and rendering (each (3, H, W))."""
+    """The scale of light ``k`` from its grey-card photo and rendering (each (c, H, W))."""
     lit = model > 1e-4
     if not bool(lit.any()):
         raise MatscanError(f"calibrate: light {k} does not light the grey card (check the rig file)")
@@ -318,12 +321,18 @@ def _grey_scale(photo: Tensor, model: Tensor, saturated: Tensor, k: int) -> floa
 
 
 def light_scales(
-    grey: Capture, albedo: float = GREY_CARD, flat_fields: bool = False, flat_sigma_px: float = 8.0
-) -> tuple[dict[str, float], dict[str, Tensor]]:
+    grey: Capture,
+    albedo: float = GREY_CARD,
+    flat_fields: bool = False,
+    flat_sigma_px: float = 8.0,
+    colour: bool = False,
+) -> tuple[dict[str, Any], dict[str, Tensor]]:
     """Per-light intensity scale from photos of a grey card (a flat Lambertian of
     ``albedo``) under each light: the scale minimising the L1 distance between the
     photo and the rendering (the paper's 24 parameters); optionally the remaining
-    smooth spatial ratio as a flat field of mean 1.
+    smooth spatial ratio as a flat field of mean 1. With ``colour`` each scale is an
+    RGB triple, one per channel: the card is neutral, so its colour under a light is
+    the light's (and the camera's white balance, the same for every light).
 
     A light under which every pixel is saturated (or the card black) is an error
     naming it; :func:`check_scales` gives the warnings about implausible scales.
@@ -346,17 +355,281 @@ def light_scales(
                 pts,
             )[0]
         photo = grey.linear([i])[0]
-        s = _grey_scale(photo, model, grey.saturated[i], k)
-        scales[str(k)] = s
+        if colour:
+            rgb = tuple(_grey_scale(photo[c : c + 1], model[c : c + 1], grey.saturated[i], k) for c in range(3))
+            scales[str(k)] = rgb
+            s = torch.tensor(rgb).view(3, 1, 1)
+        else:
+            s = scales[str(k)] = _grey_scale(photo, model, grey.saturated[i], k)
         if flat_fields:
-            ratio = (photo / (s * model).clamp_min(1e-4)).mean(0)
-            ratio = blur(ratio, flat_sigma_px)
-            flats[str(k)] = (ratio / ratio.mean().clamp_min(1e-12))[None]
+            ratio = smooth((photo / (s * model).clamp_min(1e-4)).mean(0), flat_sigma_px)
+            mean = float(ratio.mean().clamp_min(1e-12))
+            # the flat field has mean 1, so the scale takes the ratio's mean: their product
+            # stays the smoothed ratio itself
+            if colour:
+                scales[str(k)] = tuple(v * mean for v in scales[str(k)])
+            else:
+                scales[str(k)] *= mean
+            flats[str(k)] = (ratio / mean)[None]
     return scales, flats
 
 
+#: The total degree of the polynomial surface a flat field is first fitted with.
+FLAT_DEGREE = 4
+
+
+def smooth(x: Tensor, sigma_px: float, degree: int = FLAT_DEGREE) -> Tensor:
+    """A smooth version of an (H, W) image: the least-squares polynomial surface of total
+    ``degree`` in x and y, plus the rest Gaussian-blurred (``sigma_px``, edges mirrored).
+
+    A flat field's brightness runs on past the photo's edge; blurring it directly
+    bends it toward the inside there (by about its slope × 0.8 σ: mirrored edges) or
+    mixes opposite edges (a periodic blur). The polynomial carries the slope and the
+    curvature, so what is blurred is nearly flat and the edges keep their level.
+    """
+    h, w = x.shape[-2:]
+    v, u = torch.meshgrid(
+        torch.linspace(-1, 1, h, dtype=torch.float64), torch.linspace(-1, 1, w, dtype=torch.float64), indexing="ij"
+    )
+    terms = torch.stack([u**i * v**j for i in range(degree + 1) for j in range(degree + 1 - i)], -1)  # (H, W, T)
+    step = max(1, int(math.sqrt(h * w / 65536)))  # at most about 256² samples for the fit
+    a = terms[::step, ::step].reshape(-1, terms.shape[-1])
+    coef = torch.linalg.lstsq(a, x[::step, ::step].reshape(-1, 1).double()).solution
+    surface = (terms @ coef)[..., 0].to(x.dtype)
+    rest = x - surface
+    radius = min(int(math.ceil(3 * sigma_px)), h - 1, w - 1)
+    if sigma_px <= 0 or radius < 1:
+        return x
+    t = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    kernel = torch.exp(-0.5 * (t / sigma_px) ** 2)
+    kernel = (kernel / kernel.sum()).to(x.dtype)
+    y = F.pad(rest[None, None], (radius, radius, radius, radius), mode="reflect")
+    y = F.conv2d(y, kernel.view(1, 1, 1, -1))
+    return surface + F.conv2d(y, kernel.view(1, 1, -1, 1))[0, 0]
+
+
+#: The grey-card photos are averaged over blocks to at most this many on each side for
+#: the position fit: the irradiance of a light is smooth, and averaging lowers the noise.
+POSITION_GRID = 64
+#: A block enters the position fit when its mean is at least this share of the photo's
+#: brightest block (dimmer ones are mostly quantisation noise in the logarithm).
+POSITION_DARK = 0.02
+#: The pull toward the rig file's places: this weight × Σ (offset / 5 mm)² beside the sum of
+#: squared log residuals. Residuals of 8-bit photos averaged over blocks are about 0.002,
+#: so it matters only where the photos leave a direction undetermined (on a simulated
+#: dome24 at 256², LEDs ±5 mm off: 0.134 mm mean error with none, 0.139 with 1e-5).
+POSITION_PRIOR = 1e-6
+#: Fits: one plain, then two with Cauchy weights at 2.5 × the residuals' robust spread.
+ROUNDS = 3
+
+
+@dataclass(frozen=True)
+class LightFit:
+    """Near lights' positions fitted to grey-card photos (:func:`fit_light_positions`).
+
+    Attributes:
+        positions: per near light (its index as text) the fitted position, mm, in the rig's frame.
+        moved_mm: per light, the distance from the rig file's position, mm.
+        vignetting: (a, b): the shared falloff toward the corners the fit found,
+            log V = a ρ² + b ρ⁴ with ρ the distance from the field's centre over half
+            its width (the flat fields hold it, when written).
+        residual: root mean square of the fit's log residual (0.01 ≈ 1%).
+    """
+
+    positions: dict[str, tuple[float, float, float]]
+    moved_mm: dict[str, float]
+    vignetting: tuple[float, float]
+    residual: float
+
+
+def _log_irradiance(pos: Tensor, aim: Tensor, exponent: Tensor, pts: Tensor) -> Tensor:
+    """log of (1/d²) · lobe · cos θ for lights at pos (L, 3) aimed at aim (L, 3) at the
+    points pts (P, 3) of the plane z = 0: (L, P); the constant R² and intensity left out."""
+    lv = pos[:, None, :] - pts[None]
+    d2 = (lv * lv).sum(-1)
+    l_dir = lv / d2.sqrt()[..., None]
+    axis = aim - pos
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    lobe = (-(l_dir * axis[:, None, :]).sum(-1)).clamp_min(1e-9).log() * exponent[:, None]
+    return -d2.log() + lobe + l_dir[..., 2].clamp_min(1e-9).log()
+
+
+def fit_light_positions(grey: Capture, grid: int = POSITION_GRID, iterations: int = 40) -> LightFit:
+    """Each near light's position from its photo of a flat grey card (a Lambertian plane
+    at z = 0), with the camera's vignetting shared by all photos.
+
+    Under a point light at q the card images to ρ I (R/d)² lobe cos θ V(x) (design.md,
+    image formation), whose shape across the field depends on q alone: where the
+    brightest point falls and how fast the brightness falls away from it. The logarithm
+    of the photos, averaged over blocks (``grid``), is fitted by Levenberg–Marquardt over
+    every light's position and log-intensity and the two vignetting terms
+    (log V = a ρ² + b ρ⁴); the card's albedo and the lights' intensities drop out. Each
+    LED keeps the aim point the rig file gives it. Two reweighting rounds (Cauchy
+    weights at 2.5 × the residuals' robust spread) discount a stain or a speck on the
+    card. Directional lights are left out (they have no position).
+
+    The card must be matte: a sheen brightens it toward each light's mirror point,
+    which the fit takes for a light elsewhere. Simulated (dome24 at 128², LEDs ±5 mm off,
+    8-bit): a card with a GGX sheen of F0 0.04 at roughness 1.0 is placed within 1.5 mm
+    on average, at roughness 0.7 it moves the lights about 28 mm (:func:`check_light_fit`
+    warns beyond ``MOVED_WARNING_MM``); a matte card, 0.4 mm.
+
+    Raises:
+        MatscanError: photos with per-image geometry, a light that lights too little of
+            the card to place it.
+    """
+    h, w = grey.size
+    pts = surface_points(grey.field_mm, (h, w), dtype=torch.float64).permute(2, 0, 1)[None]
+    gh, gw = min(h, grid), min(w, grid)
+    pts = F.adaptive_avg_pool2d(pts, (gh, gw))[0].permute(1, 2, 0).reshape(-1, 3)  # (P, 3)
+    half = float(grey.field_mm[0]) / 2
+    rho2 = (pts[:, 0] ** 2 + pts[:, 1] ** 2) / half**2  # (P,)
+    chosen, photos, masks = [], [], []
+    for i, k in enumerate(grey.light_indices):
+        if k is None:
+            raise MatscanError("calibrate: grey-card photos must come from a rig with fixed lights")
+        if grey.rig.lights[k].directional:
+            continue
+        grey_photo = grey.linear([i])[0].double().mean(0)[None, None]  # (1, 1, H, W)
+        block = F.adaptive_avg_pool2d(grey_photo, (gh, gw)).reshape(-1)
+        sat = F.adaptive_max_pool2d(grey.saturated[i][None].float(), (gh, gw)).reshape(-1) > 0
+        ok = ~sat & (block > POSITION_DARK * float(block.max()))
+        if int(ok.sum()) < 16:
+            raise MatscanError(f"calibrate: light {k} lights too little of the grey card to place it")
+        chosen.append((i, k))
+        photos.append(block.clamp_min(1e-12).log())
+        masks.append(ok)
+    if not chosen:
+        return LightFit({}, {}, (0.0, 0.0), 0.0)
+    index = [i for i, _ in chosen]
+    start = grey.lights.select(index).position.double()  # (L, 3)
+    aim = torch.tensor([grey.rig.lights[k].aim_mm for _, k in chosen], dtype=torch.float64)
+    exponent = grey.lights.select(index).exponent.double()
+    logp = torch.stack(photos)  # (L, P)
+    ok = torch.stack(masks)
+
+    def residual(own: Tensor, vig: Tensor, logp_k: Tensor, start_k: Tensor, aim_k: Tensor, m_k: Tensor) -> Tensor:
+        """One light's log residuals (P,) at its offset and log-intensity ``own`` (4,)
+        and the vignetting ``vig`` (2,)."""
+        model = _log_irradiance((start_k + own[:3])[None], aim_k[None], m_k[None], pts)[0]
+        return logp_k - model - own[3] - vig[0] * rho2 - vig[1] * rho2**2
+
+    data = (logp, start, aim, exponent)
+    own = torch.zeros(len(chosen), 4, dtype=torch.float64)
+    own[:, 3] = ((logp - _log_irradiance(start, aim, exponent, pts)) * ok).sum(1) / ok.sum(1)
+    vig = torch.zeros(2, dtype=torch.float64)
+    weights = ok.double()
+    for _ in range(ROUNDS):
+        own, vig = _levenberg_marquardt(residual, data, own, vig, weights, iterations)
+        r = torch.vmap(residual, in_dims=(0, None, 0, 0, 0, 0))(own, vig, *data)
+        spread = 1.4826 * float(r[ok].abs().median()) + 1e-6
+        weights = ok / (1 + (r / (2.5 * spread)) ** 2)
+    rms = float(((r**2 * ok).sum() / ok.sum()).sqrt())
+    keys = [str(k) for _, k in chosen]
+    pos = (start + own[:, :3]).tolist()
+    moved = own[:, :3].norm(dim=-1).tolist()
+    return LightFit(
+        {k: (round(p[0], 3), round(p[1], 3), round(p[2], 3)) for k, p in zip(keys, pos, strict=True)},
+        {k: round(d, 3) for k, d in zip(keys, moved, strict=True)},
+        (round(float(vig[0]), 5), round(float(vig[1]), 5)),
+        rms,
+    )
+
+
+def _levenberg_marquardt(residual, data, own: Tensor, shared: Tensor, weights: Tensor, iterations: int):
+    """Minimise Σ weights · r² + POSITION_PRIOR · Σ (offset / 5 mm)² over every light's
+    ``own`` (L, 4: offset mm, log-intensity) and the parameters all lights share (S,).
+
+    Light k's residuals depend on its own four numbers and the shared ones, so the
+    normal equations are assembled from per-light Jacobians into one (4L + S)² system."""
+    n, m = own.shape[0], shared.shape[0]
+    dims = (0, None) + (0,) * len(data)
+    residuals = torch.vmap(residual, in_dims=dims)
+    jacobians = torch.vmap(torch.func.jacfwd(residual, argnums=(0, 1)), in_dims=dims)
+    prior = torch.tensor([1.0, 1.0, 1.0, 0.0], dtype=own.dtype) * POSITION_PRIOR / 25
+
+    def cost(o: Tensor, v: Tensor) -> float:
+        r = residuals(o, v, *data)
+        return float((weights * r * r).sum() + (prior * o * o).sum())
+
+    damping, current = 1e-3, cost(own, shared)
+    for _ in range(iterations):
+        r = residuals(own, shared, *data)  # (L, P)
+        j_own, j_shared = jacobians(own, shared, *data)  # (L, P, 4), (L, P, S)
+        wj_own, wj_shared = weights[..., None] * j_own, weights[..., None] * j_shared
+        a = torch.zeros(4 * n + m, 4 * n + m, dtype=own.dtype)
+        blocks = torch.einsum("lpi,lpj->lij", wj_own, j_own) + torch.diag(prior)  # (L, 4, 4)
+        a[: 4 * n, : 4 * n] = torch.block_diag(*blocks)
+        cross = torch.einsum("lpi,lpj->lij", wj_own, j_shared).reshape(4 * n, m)
+        a[: 4 * n, 4 * n :] = cross
+        a[4 * n :, : 4 * n] = cross.T
+        a[4 * n :, 4 * n :] = torch.einsum("lpi,lpj->ij", wj_shared, j_shared)
+        b_own = torch.einsum("lpi,lp->li", wj_own, r) + prior * own
+        b = torch.cat([b_own.reshape(-1), torch.einsum("lpi,lp->i", wj_shared, r)])
+        diag = a.diagonal().clamp_min(1e-12)
+        while True:
+            step = torch.linalg.solve(a + damping * torch.diag(diag), b)
+            new_own, new_shared = own - step[: 4 * n].view(n, 4), shared - step[4 * n :]
+            new = cost(new_own, new_shared)
+            if new < current:
+                done = current - new < 1e-10 * current
+                own, shared, current, damping = new_own, new_shared, new, damping / 3
+                break
+            damping *= 4
+            if damping > 1e8:
+                return own, shared
+        if done:
+            break
+    return own, shared
+
+
+#: A fitted light this far from the rig file's place (mm), or a fit whose log residual
+#: is above FIT_RESIDUAL, is worth a warning: a wrong rig file, or a card that is not a
+#: flat matte grey filling the field.
+MOVED_WARNING_MM = 20.0
+FIT_RESIDUAL = 0.03
+
+
+def check_light_fit(fit: LightFit, source: str = "calibration") -> list[str]:
+    """One-line warnings about fitted light positions (:func:`fit_light_positions`)."""
+    warnings = []
+    far = sorted((int(k) for k, d in fit.moved_mm.items() if d > MOVED_WARNING_MM))
+    if far:
+        worst = max(fit.moved_mm.values())
+        warnings.append(
+            f"{source}: {_light_list(far)} moved more than {MOVED_WARNING_MM:g} mm from the rig file "
+            f"(up to {worst:.1f} mm); check the rig file, and that the grey card is matte and lies flat "
+            "at the sample plane"
+        )
+    if fit.residual > FIT_RESIDUAL:
+        warnings.append(
+            f"{source}: the grey card departs from the lights' model by {100 * fit.residual:.1f}% (rms); "
+            "check that it is matte, clean and fills the field"
+        )
+    return warnings
+
+
+def with_light_positions(capture: Capture, positions: Mapping[int, Sequence[float]]) -> Capture:
+    """The capture with the named rig lights at other positions (mm, the rig's frame),
+    each LED still aimed at the point the rig file aims it at; other photos unchanged."""
+    lights = capture.lights
+    pos, axis = lights.position.clone(), lights.axis.clone()
+    for i, k in enumerate(capture.light_indices):
+        if k is None or k not in positions:
+            continue
+        p = torch.tensor([float(v) for v in positions[k]], dtype=pos.dtype)
+        aim = torch.tensor(capture.rig.lights[k].aim_mm, dtype=pos.dtype)
+        pos[i] = p
+        axis[i] = (aim - p) / (aim - p).norm()
+    return replace(capture, lights=replace(lights, position=pos, axis=axis))
+
+
 def write_calibration(
-    path: Path, matrix: Tensor | None, scales: dict[str, float] | None, flats: dict[str, Tensor] | None = None
+    path: Path,
+    matrix: Tensor | None,
+    scales: Mapping[str, float | Sequence[float]] | None,
+    flats: dict[str, Tensor] | None = None,
+    positions: Mapping[str, Sequence[float]] | None = None,
 ) -> dict[str, Any]:
     """Write ``calibration.json`` (and flat-field EXRs beside it)."""
     from matscan.imagefile import write_image
@@ -365,7 +638,12 @@ def write_calibration(
     if matrix is not None:
         doc["colour_matrix"] = [[round(float(v), 6) for v in row] for row in matrix]
     if scales:
-        doc["light_scales"] = {k: round(v, 6) for k, v in scales.items()}
+        doc["light_scales"] = {
+            k: round(float(v), 6) if isinstance(v, (int, float)) else [round(float(c), 6) for c in v]
+            for k, v in scales.items()
+        }
+    if positions:
+        doc["light_positions_mm"] = {k: [round(float(v), 3) for v in p] for k, p in positions.items()}
     if flats:
         doc["flat_fields"] = {}
         for k, t in flats.items():
@@ -388,17 +666,20 @@ class Calibration:
         colour_matrix: (3, 3) linear camera RGB → linear sRGB, from the chart photo; else None.
         chart_error: mean absolute error of the chart's 24 patches after the matrix
             (linear sRGB, [0, 1] scale); else None.
-        light_scales: per rig light (its index as text): photo = scale × model; empty without a grey card.
+        light_scales: per rig light (its index as text) the RGB scale: photo = scale × model,
+            per channel; empty without a grey card.
         flat_fields: per rig light, (1, H, W) of mean 1; empty unless asked for.
         warnings: one line each, saying what to check (:func:`check_chart`, :func:`check_scales`).
+        light_fit: the near lights' fitted positions (:func:`fit_light_positions`), when asked for.
     """
 
     path: Path
     colour_matrix: Tensor | None
     chart_error: float | None
-    light_scales: dict[str, float]
+    light_scales: dict[str, tuple[float, float, float]]
     flat_fields: dict[str, Tensor]
     warnings: tuple[str, ...]
+    light_fit: LightFit | None = None
 
 
 CHART_ENCODINGS = ("srgb", "linear")
@@ -412,6 +693,7 @@ def calibrate(
     chart_encoding: str = "srgb",
     flat_fields: bool = False,
     overwrite: bool = False,
+    positions: bool = False,
 ) -> Calibration:
     """Write ``calibration.json`` from a ColorChecker photo and/or a grey-card capture
     (``matscan calibrate``).
@@ -421,7 +703,8 @@ def calibrate(
             in ``capture.json``); checked and locked before any work
             (:func:`matscan.outputs.claim_output`), never one of the inputs.
         grey: capture folder of an 18 % grey card under each light (``"@sample"``
-            names the built-in sample capture): per-light scales (:func:`light_scales`).
+            names the built-in sample capture): per-light RGB scales (:func:`light_scales`;
+            with a chart, measured on the colour-corrected photos).
         chart: photo of a ColorChecker Classic: the colour matrix (:func:`colour_matrix`).
         corners: the outer corners of the chart's grid of cells in pixels (x, y),
             top-left, top-right, bottom-right, bottom-left (:func:`sample_patches`);
@@ -430,6 +713,9 @@ def calibrate(
             chart photo (a float photo is linear).
         flat_fields: also write per-light flat fields (``flat_NN.exr`` beside ``out``).
         overwrite: replace an existing calibration file (and its flat fields).
+        positions: also fit every near light's position to its grey-card photo
+            (:func:`fit_light_positions`) and write them as ``light_positions_mm``; the
+            scales and flat fields are then measured against the lights at those places.
 
     Returns:
         :class:`Calibration`: what was written and measured, with warnings.
@@ -444,6 +730,8 @@ def calibrate(
 
     if grey is None and chart is None:
         raise MatscanError("calibrate: give grey (a capture of a grey card under each light) and/or chart (a photo)")
+    if positions and grey is None:
+        raise MatscanError("calibrate: positions are fitted to grey-card photos; give grey")
     if chart_encoding not in CHART_ENCODINGS:
         raise MatscanError(f"chart_encoding: {chart_encoding!r} is not one of {', '.join(CHART_ENCODINGS)}")
     grey = capture_folder(grey) if grey is not None else None
@@ -452,7 +740,7 @@ def calibrate(
         if flat_fields and grey is not None:  # the flat-field files beside it are outputs too
             for flat in sorted(claim.path.parent.glob("flat_*.exr")):
                 check_destination(flat, inputs, "file", overwrite)
-        return _calibrate(claim.path, grey, chart, corners, chart_encoding, flat_fields)
+        return _calibrate(claim.path, grey, chart, corners, chart_encoding, flat_fields, positions)
 
 
 def _calibrate(
@@ -462,13 +750,14 @@ def _calibrate(
     corners: Sequence[Sequence[float]] | None,
     chart_encoding: str,
     flat_fields: bool,
+    positions: bool = False,
 ) -> Calibration:
     """:func:`calibrate` once its output is claimed: measure, then write ``out``."""
     from matscan.capture import load_capture
     from matscan.imagefile import read_image
 
     matrix = residual = None
-    scales: dict[str, float] = {}
+    scales: dict[str, tuple[float, float, float]] = {}
     flats: dict[str, Tensor] = {}
     warnings: list[str] = []
     if chart is not None:
@@ -482,11 +771,20 @@ def _calibrate(
         warnings += check_chart(measured)
         matrix = colour_matrix(measured, colorchecker_linear())
         residual = float((measured @ matrix.T - colorchecker_linear()).abs().mean())
+    fit = None
     if grey is not None:
-        scales, flats = light_scales(load_capture(grey), flat_fields=flat_fields)
-        warnings += check_scales(scales, str(out))
-    write_calibration(out, matrix, scales, flats)
-    return Calibration(out, matrix, residual, scales, flats, tuple(warnings))
+        card = load_capture(grey)
+        if matrix is not None:  # the scales divide photos already colour-corrected (apply_calibration)
+            n = len(card.files)
+            card = replace(card, correction=Correction(matrix, torch.ones(n, 3), (None,) * n))
+        if positions:
+            fit = fit_light_positions(card)
+            card = with_light_positions(card, {int(k): p for k, p in fit.positions.items()})
+            warnings += check_light_fit(fit, str(out))
+        scales, flats = light_scales(card, flat_fields=flat_fields, colour=True)
+        warnings += check_scales({k: sum(v) / 3 for k, v in scales.items()}, str(out))
+    write_calibration(out, matrix, scales, flats, fit.positions if fit is not None else None)
+    return Calibration(out, matrix, residual, scales, flats, tuple(warnings), fit)
 
 
 _CALIBRATION_KEYS = {
@@ -495,6 +793,7 @@ _CALIBRATION_KEYS = {
     "light_scales": False,
     "flat_fields": False,
     "grey_albedo": False,
+    "light_positions_mm": False,
 }
 #: The largest magnitude of a colour matrix entry (real ones are within ±3).
 MAX_MATRIX_ENTRY = 1e3
@@ -554,6 +853,21 @@ def _scales(value: Any, where: str, rig: Rig) -> dict[int, tuple[float, float, f
     return scales
 
 
+def _positions(value: Any, where: str, rig: Rig) -> dict[int, tuple[float, float, float]]:
+    """Per-light positions (mm): three finite numbers each, above the sample plane, for
+    near lights only."""
+    out = {}
+    for k, p in _light_keyed(value, where, rig).items():
+        field = f"{where}['{k}']"
+        if rig.lights[k].directional:
+            raise MatscanError(f"{field}: light {k} is directional in rig {rig.name!r}; it has no position")
+        x, y, z = check_vector(p, 3, field)
+        if not z > 0:
+            raise MatscanError(f"{field}: light {k} would be at z = {z:g} mm, not above the sample plane (z > 0)")
+        out[k] = (x, y, z)
+    return out
+
+
 def _flat_field(path: Path, size: tuple[int, int]) -> Tensor:
     """A flat field (1 or 3, H, W) read from ``path``: finite, the photos' size."""
     from matscan.imagefile import read_image
@@ -610,12 +924,14 @@ def _light_list(indices: list[int]) -> str:
 
 def apply_calibration(capture: Capture) -> Capture:
     """The capture with its calibration applied (colour matrix, then per-light scale
-    and flat field); unchanged when it has none.
+    and flat field, and the lights at their calibrated positions); unchanged when it
+    has none.
 
     Every field is checked first (errors name the calibration file or
     ``capture.json: calibration`` and the field): ``colour_matrix`` 3 × 3 finite;
     ``light_scales`` keyed by lights of the rig, each finite and positive;
-    ``flat_fields`` keyed by lights, naming readable files of the photos' size.
+    ``flat_fields`` keyed by lights, naming readable files of the photos' size;
+    ``light_positions_mm`` keyed by near lights, each three finite numbers with z > 0.
     Plausible-but-wrong calibrations (scales for only some of the capture's lights,
     implausible scales) are appended as one-line warnings to the result's
     ``meta["warnings"]``.
@@ -632,6 +948,9 @@ def apply_calibration(capture: Capture) -> Capture:
     matrix = _colour_matrix(cal["colour_matrix"], f"{prefix}colour_matrix") if "colour_matrix" in cal else None
     scales = _scales(cal["light_scales"], f"{prefix}light_scales", capture.rig) if "light_scales" in cal else {}
     flats = _flat_files(cal["flat_fields"], f"{prefix}flat_fields", capture) if "flat_fields" in cal else {}
+    if "light_positions_mm" in cal:
+        moved = _positions(cal["light_positions_mm"], f"{prefix}light_positions_mm", capture.rig)
+        capture = with_light_positions(capture, moved)
     warnings = check_scales({str(k): sum(s) / 3 for k, s in scales.items()}, name)
     if "light_scales" in cal:
         warnings += _coverage_warning(scales, capture, name)

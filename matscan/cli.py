@@ -182,6 +182,8 @@ def cmd_calibrate(args: argparse.Namespace) -> str:
 
     if not args.grey and not args.chart:
         raise MatscanError("calibrate: give --grey CAPTURE (grey card under each light) and/or --chart PHOTO")
+    if args.positions and not args.grey:
+        raise MatscanError("calibrate: --positions fits the lights to grey-card photos; give --grey CAPTURE")
     corners = None
     if args.corners:
         v = _vector(args.corners, 8, "--corners")
@@ -194,6 +196,7 @@ def cmd_calibrate(args: argparse.Namespace) -> str:
         chart_encoding=args.chart_encoding,
         flat_fields=args.flat_fields,
         overwrite=args.overwrite,
+        positions=args.positions,
     )
     for warning in cal.warnings:
         print(f"matscan: warning: {warning}", file=sys.stderr)
@@ -201,8 +204,17 @@ def cmd_calibrate(args: argparse.Namespace) -> str:
     if cal.colour_matrix is not None:
         parts.append(f"colour matrix (mean patch error {cal.chart_error:.4f})")
     if args.grey:
-        scales = cal.light_scales
-        parts.append(f"{len(scales)} light scales ({min(scales.values()):.3f} to {max(scales.values()):.3f})")
+        means = [sum(s) / 3 for s in cal.light_scales.values()]
+        parts.append(f"{len(means)} light scales (RGB, mean {min(means):.3f} to {max(means):.3f})")
+    fit = cal.light_fit
+    if fit is not None and fit.moved_mm:
+        moved = fit.moved_mm.values()
+        parts.append(
+            f"{len(fit.positions)} light positions ({min(moved):.1f} to {max(moved):.1f} mm from the rig file; "
+            f"fit residual {100 * fit.residual:.2f}%)"
+        )
+    elif fit is not None:
+        parts.append("no near lights to place")
     return f"calibrate: wrote {args.out}: " + ", ".join(parts)
 
 
@@ -783,6 +795,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="calibration.json to write (put it in the capture folder)")
     p.add_argument("--grey", default=None, metavar="CAPTURE", help="capture of an 18%% grey card under each light")
     p.add_argument("--flat-fields", dest="flat_fields", action="store_true", help="also write per-light flat fields")
+    p.add_argument(
+        "--positions",
+        action="store_true",
+        help="also fit each near light's position to its grey-card photo (the card must fill the field)",
+    )
     p.add_argument("--chart", default=None, metavar="PHOTO", help="photo of a ColorChecker Classic (24 patches)")
     p.add_argument("--chart-encoding", dest="chart_encoding", choices=["srgb", "linear"], default="srgb")
     p.add_argument(

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from matscan.calibrate import (
     apply_calibration,
@@ -65,7 +66,9 @@ def test_colour_matrix_is_recovered(tmp_path):
     torch.testing.assert_close(torch.tensor(doc["colour_matrix"]), a, atol=1e-3, rtol=0)
 
 
-def _grey_capture(tmp_path, scales, indices):
+def _grey_capture(tmp_path, scales, indices, camera=None):
+    """A grey card under dome24's lights ``indices`` of intensity ``scales``; photos in
+    the camera's RGB when its matrix (camera RGB → linear sRGB) is given."""
     size = 32
     n = torch.zeros(3, size, size)
     n[2] = 1
@@ -81,6 +84,8 @@ def _grey_capture(tmp_path, scales, indices):
         ls.reference_distance_mm,
     )
     photos = simulate_images(card, ls, rig.field_mm, CameraModel(read_noise=0.001, encoding="linear", bits=16))
+    if camera is not None:
+        photos = torch.einsum("ij,njhw->nihw", torch.linalg.inv(camera), photos)
     write_capture(tmp_path / "grey", photos, rig, light_indices=indices, encoding="linear", bits=16)
     return load_capture(tmp_path / "grey")
 
@@ -113,7 +118,7 @@ def test_calibrate_function_writes_and_returns_the_calibration(tmp_path):
     a = torch.tensor([[1.1, 0.05, -0.02], [0.03, 0.92, 0.04], [-0.01, 0.08, 1.2]])
     write_image(tmp_path / "chart.exr", _chart(a).permute(1, 2, 0).numpy(), bits=32)
     indices, truth = [0, 12, 23], [1.05, 1.2, 0.8]
-    _grey_capture(tmp_path, truth, indices)
+    _grey_capture(tmp_path, truth, indices, camera=a)  # the card seen by the camera that saw the chart
     out = tmp_path / "object" / "calibration.json"  # beside the capture it corrects, never in the grey one
     cal = calibrate(
         out,
@@ -126,10 +131,12 @@ def test_calibrate_function_writes_and_returns_the_calibration(tmp_path):
     assert isinstance(cal, Calibration) and cal.path == out.resolve() and cal.warnings == ()
     torch.testing.assert_close(cal.colour_matrix, a, atol=1e-4, rtol=0)
     assert 0 <= cal.chart_error < 1e-4
-    assert [abs(cal.light_scales[str(k)] / s - 1) < 0.005 for k, s in zip(indices, truth, strict=True)] == [True] * 3
+    # RGB scales, measured on the colour-corrected card: each channel the light's scale
+    for k, s in zip(indices, truth, strict=True):
+        assert [abs(c / s - 1) < 0.005 for c in cal.light_scales[str(k)]] == [True] * 3
     assert sorted(cal.flat_fields) == ["0", "12", "23"]
     doc = json.loads(out.read_text())
-    assert doc["light_scales"] == {k: round(v, 6) for k, v in cal.light_scales.items()}
+    assert doc["light_scales"] == {k: [round(c, 6) for c in v] for k, v in cal.light_scales.items()}
     assert sorted(p.name for p in out.parent.glob("flat_*.exr")) == ["flat_00.exr", "flat_12.exr", "flat_23.exr"]
     with pytest.raises(MatscanError, match="exists"):  # an existing calibration needs overwrite=True
         calibrate(out, chart=tmp_path / "chart.exr", chart_encoding="linear")
@@ -237,3 +244,113 @@ def test_reference_values_are_colour_sciences():
     np.testing.assert_allclose(colorchecker_linear().numpy(), rgb, atol=1e-6)
     # and an independent known value: the white patch is near sRGB 243 (linear 0.896)
     assert 0.85 < float(colorchecker_linear()[18].mean()) < 0.93
+
+
+# Near-light positions from a grey card: a dome24 whose LEDs are not where the rig file
+# says, photographed through a vignetting lens. The photos are made here from the image
+# formation model's closed form (design.md), not by the renderer.
+CARD_SIZE = 128
+CARD_VIGNETTING = 0.2
+
+
+def _card_irradiance(positions, gains, size=CARD_SIZE, field=120.0, radius=225.0):
+    """0.18 · I (R/d)² (a·(−l)) l_z for LEDs at ``positions`` (L, 3) aimed at the
+    origin (exponent 1), per channel: (L, 3, size, size), float64."""
+    c = (torch.arange(size, dtype=torch.float64) + 0.5) / size * field - field / 2
+    x, y = c.view(1, -1).expand(size, size), -c.view(-1, 1).expand(size, size)
+    p = torch.stack([x, y, torch.zeros_like(x)], -1)  # (H, W, 3)
+    q = positions.double()[:, None, None, :]
+    lv = q - p
+    d = lv.norm(dim=-1)
+    light = lv / d[..., None]
+    axis = -q / q.norm(dim=-1, keepdim=True)
+    e = (radius / d) ** 2 * (-(light * axis).sum(-1)) * light[..., 2]
+    return 0.18 * gains.double()[:, :, None, None] * e[:, None]
+
+
+@pytest.fixture(scope="module")
+def moved_dome(tmp_path_factory):
+    """A grey-card capture (16-bit linear) from dome24 with every LED ±5 mm off and
+    ±20% / ±3% (colour) off in brightness; returns (folder, true positions, gains)."""
+    g = torch.Generator().manual_seed(11)
+    rig = builtin_rig("dome24")
+    true = rig.light_set().position.double() + (torch.rand(24, 3, generator=g, dtype=torch.float64) * 2 - 1) * 5
+    gains = (0.8 + 0.4 * torch.rand(24, 1, generator=g)) * (0.97 + 0.06 * torch.rand(24, 3, generator=g))
+    c = (torch.arange(CARD_SIZE, dtype=torch.float64) + 0.5) / CARD_SIZE * 2 - 1
+    vignetting = 1 - CARD_VIGNETTING * (c.view(1, -1) ** 2 + c.view(-1, 1) ** 2)
+    photos = _card_irradiance(true, gains) * vignetting
+    photos = (photos + 0.0005 * torch.randn(photos.shape, generator=g, dtype=torch.float64)).clamp(0, 1).float()
+    folder = tmp_path_factory.mktemp("dome") / "grey"
+    write_capture(folder, photos, rig, light_indices=list(range(24)), encoding="linear", bits=16)
+    return folder, true, gains
+
+
+def test_light_positions_are_fitted_to_a_grey_card(moved_dome):
+    from matscan.calibrate import fit_light_positions
+
+    folder, true, _ = moved_dome
+    fit = fit_light_positions(load_capture(folder))
+    fitted = torch.tensor([fit.positions[str(k)] for k in range(24)], dtype=torch.float64)
+    error = (fitted - true).norm(dim=-1)
+    moved = (true - builtin_rig("dome24").light_set().position.double()).norm(dim=-1)
+    assert float(moved.mean()) > 4  # the rig file is off by about 5 mm
+    assert float(error.mean()) < 0.3 and float(error.max()) < 1.0
+    # log V = log(1 − 0.2 ρ²) ≈ −0.2 ρ² − 0.02 ρ⁴
+    assert abs(fit.vignetting[0] + 0.2) < 0.02
+    assert fit.residual < 0.01
+    rig_file = {
+        str(k): float(d) for k, d in enumerate((fitted - builtin_rig("dome24").light_set().position).norm(dim=-1))
+    }
+    assert all(abs(fit.moved_mm[k] - d) < 0.01 for k, d in rig_file.items())
+
+
+def test_calibrate_positions_moves_the_lights_and_corrects_the_card(moved_dome, tmp_path):
+    import shutil
+
+    folder, true, gains = moved_dome
+    grey = tmp_path / "grey"
+    shutil.copytree(folder, grey)
+    out = tmp_path / "cal" / "calibration.json"
+    assert main(["calibrate", "--grey", str(grey), "--flat-fields", "--positions", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    placed = torch.tensor([doc["light_positions_mm"][str(k)] for k in range(24)], dtype=torch.float64)
+    assert float((placed - true).norm(dim=-1).max()) < 1.0
+    assert all(len(doc["light_scales"][str(k)]) == 3 for k in range(24))  # RGB
+    for name in [out.name, *doc["flat_fields"].values()]:
+        shutil.copy(out.parent / name, grey / name)
+    meta = json.loads((grey / "capture.json").read_text())
+    meta["calibration"] = "calibration.json"
+    (grey / "capture.json").write_text(json.dumps(meta))
+    corrected = apply_calibration(load_capture(grey))
+    torch.testing.assert_close(corrected.lights.position.double(), placed, atol=1e-4, rtol=0)
+    axis = -placed / placed.norm(dim=-1, keepdim=True)  # still aimed at the rig file's aim point, the origin
+    torch.testing.assert_close(corrected.lights.axis.double(), axis, atol=1e-5, rtol=0)
+    # corrected, the card images as under intensity-1 lights at the fitted places, in every channel
+    expected = _card_irradiance(placed, torch.ones(24, 3))
+    ratio = F.avg_pool2d(corrected.linear().double(), 8) / F.avg_pool2d(expected, 8)  # over the photos' noise
+    assert float((ratio - 1).abs().mean()) < 0.003
+    assert float((ratio.mean((-1, -2)) - 1).abs().max()) < 0.005
+
+
+def test_positions_need_a_grey_card(tmp_path, capsys):
+    assert (
+        main(["calibrate", "--chart", str(tmp_path / "c.png"), "--positions", "--out", str(tmp_path / "c.json")]) == 2
+    )
+    err = capsys.readouterr().err.strip()
+    assert err == "matscan: error: calibrate: --positions fits the lights to grey-card photos; give --grey CAPTURE"
+    with pytest.raises(MatscanError, match="positions are fitted to grey-card photos; give grey"):
+        from matscan.calibrate import calibrate
+
+        calibrate(tmp_path / "c.json", chart=tmp_path / "c.png", positions=True)
+
+
+@pytest.mark.parametrize("shape", [(40, 60), (64, 64), (90, 30)])
+def test_flat_field_smoothing_keeps_a_smooth_field_to_the_edges(shape):
+    from matscan.calibrate import smooth
+
+    h, w = shape
+    v, u = torch.meshgrid(torch.linspace(-1, 1, h), torch.linspace(-1, 1, w), indexing="ij")
+    field = 1 - 0.2 * (u**2 + v**2) + 0.1 * u  # vignetting and a light's slope: a smooth field
+    torch.testing.assert_close(smooth(field, 8.0), field, atol=1e-5, rtol=0)  # edges kept, any aspect
+    noisy = field + 0.01 * torch.randn(h, w, generator=torch.Generator().manual_seed(0))
+    assert float((smooth(noisy, 8.0) - field).abs().mean()) < 0.003  # the noise averaged away

@@ -503,6 +503,13 @@ def _set(*path: Any, value: Any) -> Callable[[dict], None]:
         (_set("calibration", "light_scales", value={"24": 1.0}), r"light_scales: key '24' is not a light of rig"),
         (_set("calibration", "light_scales", value={"5": 0}), r"light_scales\['5'\]: light 5 has scale 0"),
         (_set("calibration", "light_scales", value={"5": -2}), r"light_scales\['5'\]: light 5 has scale -2"),
+        (_set("calibration", "light_positions_mm", value=[1, 2]), r"light_positions_mm: expected an object"),
+        (_set("calibration", "light_positions_mm", value={"0": [1, 2]}), r"mm\['0'\]: expected 3 finite numbers"),
+        (_set("calibration", "light_positions_mm", value={"24": [0, 0, 9]}), r"key '24' is not a light of rig"),
+        (
+            _set("calibration", "light_positions_mm", value={"3": [80, 0, -5]}),
+            r"light_positions_mm\['3'\]: light 3 would be at z = -5 mm, not above the sample plane",
+        ),
         (_set("calibration", "flat_fields", value=123), r"calibration\.flat_fields: expected an object"),
         (_set("calibration", "flat_fields", value={"0": 7}), r"calibration\.flat_fields\['0'\]: expected a file"),
         (_set("calibration", "flat_fields", value={"0": "gone.exr"}), r"flat_fields\['0'\]: no such file"),
