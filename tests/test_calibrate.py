@@ -354,3 +354,15 @@ def test_flat_field_smoothing_keeps_a_smooth_field_to_the_edges(shape):
     torch.testing.assert_close(smooth(field, 8.0), field, atol=1e-5, rtol=0)  # edges kept, any aspect
     noisy = field + 0.01 * torch.randn(h, w, generator=torch.Generator().manual_seed(0))
     assert float((smooth(noisy, 8.0) - field).abs().mean()) < 0.003  # the noise averaged away
+
+
+def test_light_fit_warnings_name_the_lights_and_what_to_check():
+    from matscan.calibrate import LightFit, check_light_fit
+
+    good = LightFit({"0": (1.0, 2.0, 200.0)}, {"0": 4.0, "1": 19.9}, (-0.2, 0.0), 0.004)
+    assert check_light_fit(good, "cal.json") == []
+    far = LightFit({}, {"0": 4.0, "3": 25.0, "4": 31.5}, (0.0, 0.0), 0.05)
+    moved, residual = check_light_fit(far, "cal.json")
+    assert moved.startswith("cal.json: lights 3, 4 have moved more than 20 mm from the rig file (up to 31.5 mm)")
+    assert "matte" in moved
+    assert residual.startswith("cal.json: the grey card departs from the lights' model by 5.0% (rms)")
