@@ -973,3 +973,28 @@ def apply_calibration(capture: Capture) -> Capture:
         raise MatscanError(f"{place}: the calibration makes the photos overflow; check its values")
     meta = {**capture.meta, "warnings": [*capture.meta.get("warnings", []), *warnings]}
     return replace(capture, correction=correction, meta=meta)
+
+
+def with_light_gains(capture: Capture, gains: Tensor) -> dict[str, Any]:
+    """The calibration a capture was read with (:func:`apply_calibration`), its per-light
+    scales multiplied by per-photo RGB ``gains`` (N, 3), as a calibration object that
+    can be written anywhere: the colour matrix, grey albedo and light positions are kept
+    as they are, flat-field files are named by absolute path, and lights the capture did
+    not photograph keep their scales. Self-calibration writes its gains this way, so a
+    later capture naming the result is corrected exactly as this one was."""
+    cal = dict(capture.calibration or {})
+    cal["format"] = CALIBRATION_FORMAT
+    n = len(capture.files)
+    if gains.shape != (n, 3):
+        raise ValueError(f"gains: expected shape ({n}, 3), got {tuple(gains.shape)}")
+    before = capture.correction.gain if capture.correction is not None else torch.ones(n, 3)
+    scales = {str(k): s for k, s in cal.get("light_scales", {}).items()}
+    for k, b, g in zip(capture.light_indices, before, gains, strict=True):
+        if k is not None:
+            scales[str(k)] = [round(float(v), 6) for v in b * g]
+    cal["light_scales"] = dict(sorted(scales.items(), key=lambda kv: int(kv[0])))
+    if "flat_fields" in cal:
+        _, prefix, _ = _where(capture)
+        flats = _flat_files(cal["flat_fields"], f"{prefix}flat_fields", capture)
+        cal["flat_fields"] = {str(k): str(path.resolve()) for k, path in flats.items()}
+    return cal

@@ -96,3 +96,58 @@ def test_written_calibration_is_reusable(tmp_path):
     )
     assert plain["rerender_rmse"] < nominal["rerender_rmse"]
     assert math.isfinite(plain["rerender_rmse"])
+
+
+def test_written_calibration_keeps_the_capture_calibration(tmp_path):
+    """With a calibration already in place (colour matrix, RGB scales, a flat field, a
+    moved LED), self_calibration.json is that calibration with the gains multiplied into
+    its scales: a copy of the capture naming it is read exactly as self-calibration read
+    the original."""
+    import numpy as np
+
+    from matscan.imagefile import write_image
+    from matscan.reconstruct.selfcal import with_gains
+
+    maps = generate("paper", 48, 4)
+    cap_dir = _capture(tmp_path, maps, _gains(11))
+    cal_dir = tmp_path / "dome-cal"
+    cal_dir.mkdir()
+    yy, xx = np.mgrid[0:48, 0:48] / 47.0
+    write_image(cal_dir / "flat_05.exr", (0.9 + 0.2 * xx * yy)[..., None].astype(np.float32))
+    scales = {str(k): [1.0 + 0.01 * k, 1.0, 1.0 - 0.005 * k] for k in range(20)}  # lights 20-23: none
+    moved = [float(v) for v in RIG.lights[7].position_mm]
+    moved[0] += 3.0
+    original = {
+        "format": "matscan-calibration/1",
+        "colour_matrix": [[1.02, 0.01, 0.0], [0.0, 1.0, 0.02], [0.01, 0.0, 0.97]],
+        "light_scales": scales,
+        "flat_fields": {"5": "flat_05.exr"},
+        "grey_albedo": 0.5,
+        "light_positions_mm": {"7": moved},
+    }
+    (cal_dir / "calibration.json").write_text(json.dumps(original))
+    meta = json.loads((cap_dir / "capture.json").read_text())
+    meta["calibration"] = "../dome-cal/calibration.json"
+    (cap_dir / "capture.json").write_text(json.dumps(meta))
+
+    rec = reconstruct(cap_dir, tmp_path / "out", ReconstructConfig(model="none", self_calibrate=True))
+    doc = json.loads((tmp_path / "out" / "self_calibration.json").read_text())
+    gains = torch.tensor([rec["self_calibration"]["light_gains"][f] for f in load_capture(cap_dir).files])
+    for key in ("colour_matrix", "grey_albedo", "light_positions_mm"):
+        assert doc[key] == original[key]
+    assert doc["flat_fields"] == {"5": str((cal_dir / "flat_05.exr").resolve())}
+    for k in range(24):  # photo k is light k
+        before = torch.tensor(scales.get(str(k), [1.0, 1.0, 1.0]))
+        torch.testing.assert_close(torch.tensor(doc["light_scales"][str(k)]), before * gains[k], atol=2e-5, rtol=1e-5)
+
+    # the same photos in another folder, naming the written calibration
+    copy = tmp_path / "copy"
+    shutil.copytree(cap_dir, copy)
+    shutil.copy(tmp_path / "out" / "self_calibration.json", copy / "selfcal.json")
+    meta["calibration"] = "selfcal.json"
+    (copy / "capture.json").write_text(json.dumps(meta))
+    seen = with_gains(apply_calibration(load_capture(cap_dir)), gains)
+    again = apply_calibration(load_capture(copy))
+    torch.testing.assert_close(again.lights.position[7], torch.tensor(moved, dtype=again.lights.position.dtype))
+    for i in (0, 5, 7, 21):
+        torch.testing.assert_close(again.linear([i]), seen.linear([i]), atol=1e-4, rtol=1e-4)

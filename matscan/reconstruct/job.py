@@ -528,6 +528,7 @@ def reconstruct(
             anyrig_name = os.path.relpath(anyrig_path(cfg.anyrig).resolve(), claim.path)
         validation = leave_out_validation(capture, cfg.validate, cfg, nets, anyrig) if cfg.validate else None
         res = reconstruct_capture(capture, cfg, nets, progress, anyrig)
+        calibrated = capture  # before the gains: self_calibration.json composes with its calibration
         if res.light_gains is not None:  # the photos as the fit saw them, for every number below
             from matscan.reconstruct.selfcal import with_gains
 
@@ -573,7 +574,7 @@ def reconstruct(
             if res.light_gains is not None:
                 from matscan.reconstruct.selfcal import calibration_document
 
-                doc = calibration_document(capture, res.light_gains)
+                doc = calibration_document(calibrated, res.light_gains)
                 (tmp / SELF_CALIBRATION).write_text(dumps(doc, SELF_CALIBRATION), encoding="utf-8")
                 record["exports"].append(SELF_CALIBRATION)
             write_report(

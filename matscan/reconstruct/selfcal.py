@@ -168,11 +168,10 @@ def _fit_error(capture: Capture, gains: Tensor, cfg: ReconstructConfig) -> float
 
 def calibration_document(capture: Capture, gains: Tensor) -> dict[str, Any]:
     """The gains as a calibration file (matscan.calibrate's format, ``light_scales`` per
-    rig light, RGB), so that a later capture on the same rig can name it."""
-    from matscan.calibrate import CALIBRATION_FORMAT
+    rig light, RGB), so that a later capture on the same rig can name it. ``capture`` is
+    the capture as calibrated before self-calibration: its own calibration (colour
+    matrix, scales, flat fields, light positions) is carried over with the gains
+    multiplied into its scales (:func:`matscan.calibrate.with_light_gains`)."""
+    from matscan.calibrate import with_light_gains
 
-    scales = {}
-    for k, g in zip(capture.light_indices, gains, strict=True):
-        if k is not None:
-            scales[str(k)] = [round(float(v), 6) for v in g]
-    return {"format": CALIBRATION_FORMAT, "light_scales": scales}
+    return with_light_gains(capture, gains)
