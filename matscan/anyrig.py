@@ -415,6 +415,9 @@ class TrainAnyRig:
     # each light's place off by |N(0, degrees)|, its intensity by N(0, intensity)
     miscal_degrees: float = 0.0
     miscal_intensity: float = 0.0
+    # ... only in samples of at least this many photos: one photo cannot show that its light
+    # is not the one named, so miscalibrating it teaches nothing the network could use
+    miscal_min_photos: int = 1
 
 
 CHECKPOINT = "checkpoint.safetensors"
@@ -437,6 +440,7 @@ def read_library(paths: Iterable[str | Path]) -> list[MapSet]:
 
 def _batch(g: torch.Generator, cfg: TrainAnyRig, library: Sequence[MapSet] = ()) -> dict[str, Tensor]:
     k = int(torch.randint(cfg.min_photos, cfg.max_photos + 1, (), generator=g))
+    miscal = (cfg.miscal_degrees, cfg.miscal_intensity) if k >= cfg.miscal_min_photos else (0.0, 0.0)
     items = [
         sample(
             g,
@@ -446,7 +450,7 @@ def _batch(g: torch.Generator, cfg: TrainAnyRig, library: Sequence[MapSet] = ())
             library,
             cfg.library_prob,
             cfg.library_metal_prob,
-            (cfg.miscal_degrees, cfg.miscal_intensity),
+            miscal,
         )
         for _ in range(cfg.batch)
     ]
@@ -479,6 +483,8 @@ def train(
             f"--miscalibration: {cfg.miscal_degrees!r}, {cfg.miscal_intensity!r} must be degrees in [0, 45] "
             "and a relative intensity in [0, 1]"
         )
+    if cfg.miscal_min_photos < 1:
+        raise MatscanError(f"--miscal-from: {cfg.miscal_min_photos!r} must be a number of photos, at least 1")
     library = read_library(cfg.library)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

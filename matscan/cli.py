@@ -598,6 +598,7 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
         ema=args.ema,
         miscal_degrees=miscal[0],
         miscal_intensity=miscal[1],
+        miscal_min_photos=args.miscal_from,
     )
     net_cfg = None if args.ps_skip is None else AnyRigConfig(ps_skip=args.ps_skip)
     result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
@@ -1166,6 +1167,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="photograph each sample under lights other than those the network is told: each light's place off "
         "by |N(0, DEG)| degrees and its intensity by N(0, REL), as on real domes and handheld captures "
         "(default 0,0)",
+    )
+    p.add_argument(
+        "--miscal-from",
+        dest="miscal_from",
+        type=positive_int,
+        default=1,
+        metavar="N",
+        help="miscalibrate only samples of at least N photos: a single photo cannot show that its light is off "
+        "(default 1: every sample)",
     )
     p.add_argument("--device", default="auto", help="auto (CUDA when there is one), cpu or cuda")
     p.add_argument(

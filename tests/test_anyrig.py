@@ -4,6 +4,7 @@ number and order of photos, the random rigs it trains on, and that it learns."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -390,3 +391,16 @@ def test_train_anyrig_trains_on_miscalibrated_captures_and_refuses_wild_ones(tmp
         err = capsys.readouterr().err.strip()
         assert "--miscalibration" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "bad").exists()
+
+
+def test_miscalibration_can_spare_single_photos():
+    """``miscal_min_photos`` 2: a one-photo sample is photographed under the very light it
+    names (the same draws as with no miscalibration), a two-photo sample is not."""
+    from matscan.anyrig import TrainAnyRig, _batch
+
+    off = {"miscal_degrees": 3.0, "miscal_intensity": 0.1, "miscal_min_photos": 2}
+    for k, spared in ((1, True), (2, False)):
+        plain = TrainAnyRig(size=16, batch=1, min_photos=k, max_photos=k)
+        a = _batch(torch.Generator().manual_seed(3), replace(plain, **off))
+        b = _batch(torch.Generator().manual_seed(3), plain)
+        assert torch.equal(a["x"], b["x"]) is spared
