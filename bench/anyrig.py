@@ -28,13 +28,17 @@ minute): the dome24 networks, each WEIGHTS given (several any-rig networks side 
 same photos), and the photometric-stereo estimate that ``--ps-skip`` networks start from
 (its albedo and normals, specular 0.04, roughness 0.5).
 
+With ``--procedural`` the materials are instead 8 procedural ones of prior v2 (the
+any-rig training's prior) whose seeds, 2^31 and up, training never draws (it draws seeds
+below 2^31); the artist and photo columns are then the first 5 and the last 3 of them.
+
 With ``--miscalibration DEG,REL`` the unseen dome's photos are taken under lights other
 than the ones its captures name (:func:`matscan.anyrig.miscalibrated`: each turned by
 |N(0, DEG)| degrees, scaled by 1 + N(0, REL)), as a handheld light or a dome whose LEDs
 are not where its file says makes them.
 
 Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
-[--miscalibration 3,0.1]
+[--miscalibration 3,0.1] [--procedural]
 (``WEIGHTS SIZE`` also works; ``WEIGHTS:raw`` scores a checkpoint's raw weights where it
 also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` scores)
 """
@@ -54,6 +58,7 @@ from matscan.evaluate import evaluation_lights
 from matscan.mapset import MapSet
 from matscan.materials.artist import ARTIST_NAMES, artist_material
 from matscan.materials.photos import TINTS, photo_material
+from matscan.materials.procedural import random_material
 from matscan.reconstruct import ReconstructConfig, reconstruct_capture
 from matscan.reconstruct.job import FLAT_START_PRIOR
 from matscan.reconstruct.networks import predict_maps
@@ -144,10 +149,17 @@ def load_spec(spec: str):
     return load(spec)
 
 
-def networks_only(paths: list[str], size: int, off: tuple[float, float] = (0.0, 0.0)) -> None:
+def materials_of(size: int, procedural: bool = False) -> list[MapSet]:
+    """The 8 non-procedural evaluation sets, or 8 procedural materials training never drew."""
+    if procedural:
+        return [random_material(size, 2**31 + i, prior="v2")[1] for i in range(8)]
+    return [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
+
+
+def networks_only(paths: list[str], size: int, off: tuple[float, float] = (0.0, 0.0), procedural: bool = False) -> None:
     nets, _ = load_model("default")
     anyrigs = [(path, load_spec(path)) for path in paths]
-    materials = [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
+    materials = materials_of(size, procedural)
     dome = builtin_rig("dome24")
     rti, test = rti_rig(TRAIN), rti_rig(TEST)
     rows: dict[tuple, list[tuple[float, float]]] = {}
@@ -183,17 +195,18 @@ def main() -> None:
         help="the unseen dome's photos taken under lights turned by |N(0, DEG)| degrees and scaled by 1 + N(0, REL), "
         "the capture naming the rig's (rti-icon and dome24 unchanged)",
     )
+    parser.add_argument("--procedural", action="store_true", help="8 procedural materials training never drew")
     args = parser.parse_args()
     off = tuple(float(v) for v in args.miscalibration.split(","))
     if len(args.weights) > 1 and args.weights[-1].isdigit():  # the older form: WEIGHTS SIZE
         args.size = int(args.weights.pop())
     if args.networks_only:
-        networks_only(args.weights, args.size, off)
+        networks_only(args.weights, args.size, off, args.procedural)
         return
     weights, size = args.weights[0], args.size
     anyrig = load_spec(weights)
     nets, _ = load_model("default")
-    materials = [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
+    materials = materials_of(size, args.procedural)
     dome = builtin_rig("dome24")
     rti, test = rti_rig(TRAIN), rti_rig(TEST)
     rows: dict[tuple, list[tuple[float, float]]] = {}

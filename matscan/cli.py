@@ -741,7 +741,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="none",
         metavar="WEIGHTS|none",
         help="an any-rig network (matscan train-anyrig's checkpoint) whose maps the solver starts from on rigs "
-        "the model does not read (another dome, a flash); default none: flat maps",
+        "the model does not read (another dome, a flash), from 2 photos; default none: flat maps",
     )
     p.add_argument(
         "--refine",

@@ -404,3 +404,16 @@ def test_miscalibration_can_spare_single_photos():
         a = _batch(torch.Generator().manual_seed(3), replace(plain, **off))
         b = _batch(torch.Generator().manual_seed(3), plain)
         assert torch.equal(a["x"], b["x"]) is spared
+
+
+def test_one_photo_starts_from_flat_maps_even_with_an_anyrig_network(tmp_path):
+    from matscan.anyrig import load
+    from matscan.capture import load_capture
+    from matscan.reconstruct import ReconstructConfig, reconstruct_capture
+
+    cap = load_capture(_rti_capture(tmp_path))
+    net = load(_weights(tmp_path))
+    one = reconstruct_capture(cap.select([4]), ReconstructConfig(), None, anyrig=net)
+    assert one.start == "flat" and any("one photo: starting from flat maps" in w for w in one.warnings)
+    two = reconstruct_capture(cap.select([2, 4]), ReconstructConfig(), None, anyrig=net)
+    assert two.start == "any-rig network"

@@ -131,6 +131,11 @@ class Result:
 #: Prior strength of the ``lm`` solver when it starts from flat maps (no networks):
 #: the start knows nothing, so the photos decide nearly everything.
 FLAT_START_PRIOR = 0.2
+#: The any-rig network starts the solver from this many photos up. From one photo every
+#: any-rig network trained so far started it worse than flat maps on the unseen simulated
+#: dome (novel-light RMSE 0.1273, 0.1404, 0.1604 against 0.1209), while from 2 to 12
+#: photos the latest is 8–26% better (runs/anyrig-one-cpu/README.md).
+ANYRIG_MIN_PHOTOS = 2
 
 
 #: A photo whose 99th-percentile linear value is below this is black: 8-bit sRGB code 4 is
@@ -306,7 +311,7 @@ def reconstruct_capture(
     """Maps from a loaded capture (no files written). Networks that do not fit the
     capture's rig (:func:`networks_misfit`) are set aside with a warning. Without
     networks the solver starts from the maps of ``anyrig`` (an any-rig network, which
-    reads any rig) when given, else from flat maps, and refines them (``refine`` "auto"
+    reads any rig) when given and there are ``ANYRIG_MIN_PHOTOS`` photos, else from flat maps, and refines them (``refine`` "auto"
     or "on") held near them with the flat start's weak prior (``FLAT_START_PRIOR``;
     docs/rti.md measures both starts)."""
     if cfg.self_calibrate:
@@ -340,6 +345,9 @@ def reconstruct_capture(
         return result
     timings: dict[str, float] = {}
     warnings = check_capture(capture, cfg)
+    if anyrig is not None and nets is None and n < ANYRIG_MIN_PHOTOS:
+        anyrig = None
+        warnings.append("one photo: starting from flat maps, not the any-rig network's (docs/rti.md)")
     if misfit is not None:
         begin = "the any-rig network's maps" if anyrig is not None else "flat maps"
         warnings.append(f"{misfit}; starting refinement from {begin}")
