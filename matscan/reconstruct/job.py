@@ -311,9 +311,9 @@ def reconstruct_capture(
     """Maps from a loaded capture (no files written). Networks that do not fit the
     capture's rig (:func:`networks_misfit`) are set aside with a warning. Without
     networks the solver starts from the maps of ``anyrig`` (an any-rig network, which
-    reads any rig) when given and there are ``ANYRIG_MIN_PHOTOS`` photos, else from flat maps, and refines them (``refine`` "auto"
-    or "on") held near them with the flat start's weak prior (``FLAT_START_PRIOR``;
-    docs/rti.md measures both starts)."""
+    reads any rig) when given and there are at least ``ANYRIG_MIN_PHOTOS`` photos, else
+    from flat maps, and refines them (``refine`` "auto" or "on") held near them with the
+    flat start's weak prior (``FLAT_START_PRIOR``; docs/rti.md measures both starts)."""
     if cfg.self_calibrate:
         from matscan.reconstruct.selfcal import estimate_gains, with_gains
 
