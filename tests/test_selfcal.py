@@ -151,3 +151,16 @@ def test_written_calibration_keeps_the_capture_calibration(tmp_path):
     torch.testing.assert_close(again.lights.position[7], torch.tensor(moved, dtype=again.lights.position.dtype))
     for i in (0, 5, 7, 21):
         torch.testing.assert_close(again.linear([i]), seen.linear([i]), atol=1e-4, rtol=1e-4)
+
+
+def test_self_calibrating_a_calibrated_capture_warns(tmp_path):
+    """A calibration that already scales every light: self-calibration says what it costs."""
+    cap_dir = _capture(tmp_path, generate("paper", 32, 1), _gains())
+    plain = reconstruct_capture(load_capture(cap_dir), ReconstructConfig(model="none", self_calibrate=True))
+    assert not any("already scales every light" in w for w in plain.warnings)
+    meta = json.loads((cap_dir / "capture.json").read_text())
+    meta["calibration"] = {"format": "matscan-calibration/1", "light_scales": {str(k): 1.0 for k in range(24)}}
+    (cap_dir / "capture.json").write_text(json.dumps(meta))
+    cap = apply_calibration(load_capture(cap_dir))
+    res = reconstruct_capture(cap, ReconstructConfig(model="none", self_calibrate=True))
+    assert sum("already scales every light" in w for w in res.warnings) == 1
