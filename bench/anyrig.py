@@ -32,13 +32,19 @@ With ``--procedural`` the materials are instead 8 procedural ones of prior v2 (t
 any-rig training's prior) whose seeds, 2^31 and up, training never draws (it draws seeds
 below 2^31); the artist and photo columns are then the first 5 and the last 3 of them.
 
+With ``--starts`` (about 2 minutes): which of the network's maps costs on rti-icon. From
+3 and 6 of its photos the ``lm`` solver is started from hybrids of the network's maps and
+flat maps, held near the start with the flat start's strength as ``--anyrig`` does;
+printed: the held-out PSNR of the start and of the solved maps, SSIM, and the solved
+specular and roughness means.
+
 With ``--miscalibration DEG,REL`` the unseen dome's photos are taken under lights other
 than the ones its captures name (:func:`matscan.anyrig.miscalibrated`: each turned by
 |N(0, DEG)| degrees, scaled by 1 + N(0, REL)), as a handheld light or a dome whose LEDs
 are not where its file says makes them.
 
 Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
-[--miscalibration 3,0.1] [--procedural]
+[--miscalibration 3,0.1] [--procedural] [--starts]
 (``WEIGHTS SIZE`` also works; ``WEIGHTS:raw`` scores a checkpoint's raw weights where it
 also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` scores)
 """
@@ -196,12 +202,16 @@ def main() -> None:
         "the capture naming the rig's (rti-icon and dome24 unchanged)",
     )
     parser.add_argument("--procedural", action="store_true", help="8 procedural materials training never drew")
+    parser.add_argument("--starts", action="store_true", help="rti-icon from hybrids of network and flat maps")
     args = parser.parse_args()
     off = tuple(float(v) for v in args.miscalibration.split(","))
     if len(args.weights) > 1 and args.weights[-1].isdigit():  # the older form: WEIGHTS SIZE
         args.size = int(args.weights.pop())
     if args.networks_only:
         networks_only(args.weights, args.size, off, args.procedural)
+        return
+    if args.starts:
+        starts(load_spec(args.weights[0]))
         return
     weights, size = args.weights[0], args.size
     anyrig = load_spec(weights)
@@ -248,25 +258,36 @@ def main() -> None:
     real_capture(anyrig, nets)
 
 
-def real_capture(anyrig, nets) -> None:
-    """rti-icon: held-out PSNR / SSIM from few to all of the other photos (module doc)."""
+def rti_icon() -> tuple[Capture, list[int], list[int]]:
+    """rti-icon imported, the positions of its 18 held-out photos, and of the 54 others."""
     import tempfile
     from pathlib import Path
 
     from matscan.capture import load_capture
     from matscan.capture.rti import import_rti
-    from matscan.reconstruct.job import display, held_out_positions, hsh_validation, photo_scores
+    from matscan.reconstruct.job import held_out_positions
 
-    t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         import_rti(Path(__file__).parents[1] / "tests" / "data" / "rti-icon", Path(tmp) / "icon")
         cap = load_capture(Path(tmp) / "icon")
-    n = len(cap.files)
-    left = held_out_positions(n, 18)
-    rest = [i for i in range(n) if i not in left]
+    left = held_out_positions(len(cap.files), 18)
+    return cap, left, [i for i in range(len(cap.files)) if i not in left]
+
+
+def kept_of(rest: list[int], count: int) -> list[int]:
+    """``count`` of the photos ``rest``, spread evenly."""
+    return [rest[round((j + 0.5) * len(rest) / count - 0.5)] for j in range(count)]
+
+
+def real_capture(anyrig, nets) -> None:
+    """rti-icon: held-out PSNR / SSIM from few to all of the other photos (module doc)."""
+    from matscan.reconstruct.job import display, hsh_validation, photo_scores
+
+    t0 = time.perf_counter()
+    cap, left, rest = rti_icon()
     print(f"rti-icon, 18 photos held out: {'photos':>6s}  flat maps (dB / SSIM)  --anyrig  HSH")
     for count in (3, 6, 12, 24, 54):
-        kept = [rest[round((j + 0.5) * len(rest) / count - 0.5)] for j in range(count)]
+        kept = kept_of(rest, count)
         sub = cap.select(kept)
         cells = []
         for a in (None, anyrig):
@@ -282,6 +303,49 @@ def real_capture(anyrig, nets) -> None:
             cells.append(f"{h['psnr_left_out']:.2f} / {h['ssim_left_out']:.3f}")
         print(f"{'':30s} {count:6d}  " + "  ".join(cells))
     print(f"rti-icon in {time.perf_counter() - t0:.0f} s")
+
+
+MAPS = ("diffuse", "specular", "roughness", "normal")
+HYBRIDS = {
+    "flat": (),
+    "network": MAPS,
+    "net normal": ("normal",),
+    "net diffuse": ("diffuse",),
+    "net spec+rough": ("specular", "roughness"),
+    "net diffuse+normal": ("diffuse", "normal"),
+}
+
+
+def starts(anyrig) -> None:
+    """``--starts``: which of the network's maps costs on rti-icon (module doc)."""
+    from matscan.reconstruct.job import display, photo_scores
+    from matscan.reconstruct.solver import flat_start
+
+    def held_out(maps: MapSet, scale: float) -> dict[str, float]:
+        return photo_scores(
+            cap, left, lambda i: display(render_maps(maps, cap.lights.select([i]), cap.field_mm, scale))
+        )
+
+    cap, left, rest = rti_icon()
+    for count in (3, 6):
+        sub = cap.select(kept_of(rest, count))
+        flat, net = flat_start(sub), MapSet(**predict_capture(anyrig, sub))
+        for name, keys in HYBRIDS.items():
+            start = MapSet(**{k: getattr(net if k in keys else flat, k) for k in MAPS})
+            maps, _, scale = solve_maps(start, sub, ReconstructConfig().lm, FLAT_START_PRIOR)
+            before, after = held_out(start, 1.0), held_out(maps, scale)
+            print(
+                f"{count} photos  {name:20s} start {before['psnr_left_out']:.2f}  "
+                f"solved {after['psnr_left_out']:.2f} dB / {after['ssim_left_out']:.3f}  "
+                f"specular {float(maps.specular.mean()):.3f}  roughness {float(maps.roughness.mean()):.3f}",
+                flush=True,
+            )
+        tilt = float(torch.rad2deg(torch.acos(net.normal[2].clamp(-1, 1))).mean())
+        print(
+            f"  the network's start: specular {float(net.specular.mean()):.3f}, roughness "
+            f"{float(net.roughness.mean()):.3f}, diffuse {float(net.diffuse.mean()):.3f} (flat maps' "
+            f"{float(flat.diffuse.mean()):.3f}), normals {tilt:.2f}° from the vertical on average"
+        )
 
 
 if __name__ == "__main__":
