@@ -421,6 +421,7 @@ class TrainAnyRig:
 
 
 CHECKPOINT = "checkpoint.safetensors"
+WEIGHTS = "weights.safetensors"  # the run's network to ship: :func:`export` of the checkpoint
 EMA_PREFIX = "ema."
 
 
@@ -467,10 +468,13 @@ def train(
 ) -> dict:
     """Train (or resume, from ``out/checkpoint.safetensors``) for ``minutes``; writes the
     checkpoint (weights, their moving average when ``cfg.ema``, and step; Adam restarts on
-    resume) and ``log.csv``. A new run's network is ``net_cfg`` (default
+    resume), ``log.csv`` and, at the end, ``weights.safetensors`` (:func:`export`: the
+    network to ship). A new run's network is ``net_cfg`` (default
     :class:`AnyRigConfig`); a resumed run keeps the checkpoint's, and a ``net_cfg`` that
     differs from it is an error, as is resuming a run that keeps an average without one."""
     from safetensors.torch import load_file, save_file
+
+    from matscan.atomic import atomic_file
     from tqdm import tqdm
 
     from matscan.materials.procedural import check_prior
@@ -519,7 +523,8 @@ def train(
         tensors = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
         if ema is not None:
             tensors.update({EMA_PREFIX + k: v.cpu().contiguous() for k, v in ema.items()})
-        save_file({**tensors, "step": torch.tensor(step)}, ckpt)
+        with atomic_file(ckpt) as tmp:  # a run killed while writing keeps its last checkpoint
+            save_file({**tensors, "step": torch.tensor(step)}, tmp)
 
     (out / "config.json").write_text(json.dumps({"train": asdict(cfg), "net": asdict(net.cfg)}, indent=1))
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
@@ -552,7 +557,8 @@ def train(
                 f.flush()
                 checkpoint()
     checkpoint()
-    return {"steps": step, "checkpoint": str(ckpt)}
+    export(ckpt, out / WEIGHTS)
+    return {"steps": step, "checkpoint": str(ckpt), "weights": str(out / WEIGHTS)}
 
 
 def config_of(state: dict[str, Tensor]) -> AnyRigConfig:
@@ -590,6 +596,27 @@ def load(path: str | Path, averaged: bool = True) -> AnyRigNet:
         what = f"lacks {missing[0]}" if missing else f"has {extra[0]}" if extra else "has tensors of other shapes"
         raise input_error(path, f"is not an any-rig network's weights (it {what})") from None
     return net.eval()
+
+
+def export(checkpoint: str | Path, out: str | Path, dtype: torch.dtype = torch.float16) -> Path:
+    """A checkpoint's network as a weights file to ship: the moving average where the
+    run keeps one (what :func:`load` uses), else the raw weights, stored as ``dtype``
+    (float16 quarters the checkpoint; they load into a float32 network), without the
+    raw weights or the step; the step and the source go in the file's metadata.
+    Written atomically; the checkpoint is checked by loading it first."""
+    from safetensors.torch import load_file, save_file
+
+    from matscan.atomic import atomic_file
+
+    net = load(checkpoint)  # a file that is not a network is a one-line error here
+    step = load_file(str(checkpoint)).get("step")
+    tensors = {k: v.detach().to(dtype).contiguous() for k, v in net.state_dict().items()}
+    meta = {"format": "matscan-anyrig/1", "source": Path(checkpoint).name}
+    if step is not None:
+        meta["step"] = str(int(step.item()))
+    with atomic_file(out) as tmp:
+        save_file(tensors, tmp, metadata=meta)
+    return Path(out)
 
 
 def predict_capture(

@@ -602,7 +602,10 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
     )
     net_cfg = None if args.ps_skip is None else AnyRigConfig(ps_skip=args.ps_skip)
     result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
-    return f"train-anyrig: {result['steps']} steps in all; checkpoint {result['checkpoint']}"
+    return (
+        f"train-anyrig: {result['steps']} steps in all; checkpoint {result['checkpoint']}, "
+        f"weights {result['weights']}"
+    )
 
 
 def cmd_synth(args: argparse.Namespace) -> str:
@@ -1120,7 +1123,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_batch)
 
     p = sub.add_parser("train-anyrig", help="train the any-rig network (resumes a run folder with a checkpoint)")
-    p.add_argument("--out", required=True, metavar="RUN", help="run folder: checkpoint.safetensors, log.csv")
+    p.add_argument(
+        "--out", required=True, metavar="RUN", help="run folder: checkpoint.safetensors, log.csv, weights.safetensors"
+    )
     p.add_argument("--minutes", type=positive_float, default=10.0, help="how long to train (default 10)")
     p.add_argument("--max-steps", dest="max_steps", type=positive_int, default=None, help="stop after this step")
     p.add_argument("--size", type=positive_int, default=64, help="crop size, a multiple of 4 (default 64)")

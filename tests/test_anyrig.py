@@ -354,6 +354,41 @@ def test_the_moving_average_is_the_mean_of_the_weights_it_has_seen(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def test_a_run_exports_its_averaged_weights_in_float16(tmp_path):
+    """weights.safetensors holds the checkpoint's moving average (what ``load`` uses) cast
+    to float16, without the raw weights or the step, which goes in the metadata; it loads
+    as the same network to float16's precision. A file that is not a network is a one-line
+    error and writes nothing."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    from matscan.anyrig import export, load, train
+    from matscan.errors import MatscanError
+
+    run = tmp_path / "run"
+    result = train(run, TrainAnyRig(size=16, batch=1, max_photos=3, ema=0.5), max_steps=2)
+    assert result["weights"] == str(run / "weights.safetensors")
+    ckpt, shipped = load_file(run / "checkpoint.safetensors"), load_file(run / "weights.safetensors")
+    assert set(shipped) == {k[len("ema.") :] for k in ckpt if k.startswith("ema.")}
+    for k, v in shipped.items():
+        assert v.dtype == torch.float16
+        assert torch.equal(v, ckpt["ema." + k].to(torch.float16))
+    with safe_open(run / "weights.safetensors", "pt") as f:
+        assert f.metadata()["step"] == "2" and f.metadata()["format"] == "matscan-anyrig/1"
+    x = torch.rand(1, 3, 10, 16, 16)
+    present = torch.ones(1, 3)
+    with torch.no_grad():
+        a = load(run / "checkpoint.safetensors")(x, present)
+        b = load(run / "weights.safetensors")(x, present)
+    for name in a:
+        torch.testing.assert_close(b[name], a[name], rtol=0, atol=2e-2)
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not a network")
+    with pytest.raises(MatscanError, match="bad.safetensors") as err:
+        export(bad, tmp_path / "out.safetensors")
+    assert "\n" not in str(err.value) and not (tmp_path / "out.safetensors").exists()
+
+
 def test_miscalibrated_lights_are_off_by_the_drawn_angle_and_brightness():
     """Each light's place turns by |N(0, σ)| (the half-normal's mean is σ √(2/π)) at its own
     distance, its intensity scales by 1 + N(0, s); none is moved with σ = s = 0."""
