@@ -473,10 +473,9 @@ def train(
     :class:`AnyRigConfig`); a resumed run keeps the checkpoint's, and a ``net_cfg`` that
     differs from it is an error, as is resuming a run that keeps an average without one."""
     from safetensors.torch import load_file, save_file
-
-    from matscan.atomic import atomic_file
     from tqdm import tqdm
 
+    from matscan.atomic import atomic_file
     from matscan.materials.procedural import check_prior
 
     check_prior(cfg.prior)

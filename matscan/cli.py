@@ -603,8 +603,7 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
     net_cfg = None if args.ps_skip is None else AnyRigConfig(ps_skip=args.ps_skip)
     result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
     return (
-        f"train-anyrig: {result['steps']} steps in all; checkpoint {result['checkpoint']}, "
-        f"weights {result['weights']}"
+        f"train-anyrig: {result['steps']} steps in all; checkpoint {result['checkpoint']}, weights {result['weights']}"
     )
 
 
