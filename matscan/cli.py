@@ -742,7 +742,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--anyrig",
         default="none",
         metavar="WEIGHTS|none",
-        help="an any-rig network (matscan train-anyrig's checkpoint) whose maps the solver starts from on rigs "
+        help="an any-rig network (the weights.safetensors or checkpoint of a matscan train-anyrig run) whose maps "
+        "the solver starts from on rigs "
         "the model does not read (another dome, a flash), from 2 photos; default none: flat maps",
     )
     p.add_argument(
