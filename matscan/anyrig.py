@@ -383,13 +383,37 @@ def sample(
     camera = CameraModel(read_noise=0.002, encoding="srgb" if srgb else "linear", bits=8 if srgb else 16)
     shots = apply_camera(radiance * exposure, camera, g) / exposure
     x = torch.stack([photo_input(shots[k], lights.select([k]), points) for k in range(photos)])
-    return {"x": x, **{k: getattr(maps, k) for k in OUT_CHANNELS}}
+    return {"x": x, "points": points, **{k: getattr(maps, k) for k in OUT_CHANNELS}}
 
 
-def loss(pred: dict[str, Tensor], batch: dict[str, Tensor]) -> Tensor:
+def loss(
+    pred: dict[str, Tensor], batch: dict[str, Tensor], render_weight: float = 0.0, lights: LightSet | None = None
+) -> Tensor:
+    """L1 of diffuse, specular and roughness plus 1 − cos of the normals; with
+    ``render_weight`` also that times the log-space L1 of the predicted maps rendered
+    under the novel ``lights`` (batched, one set per sample) against the true maps
+    rendered there (:func:`matscan.losses.rendering_loss`, summed over the lights), at
+    the batch's surface points: a map the photos leave open is then judged by how it
+    relights, not by its distance from the truth alone."""
     terms = [(pred[k] - batch[k]).abs().mean() for k in ("diffuse", "specular", "roughness")]
     terms.append(1 - (pred["normal"] * batch["normal"]).sum(1).mean())
+    if render_weight > 0:
+        from matscan.losses import rendering_loss
+
+        if lights is None:
+            raise ValueError("a rendering term needs its lights")
+        truth = {k: batch[k] for k in OUT_CHANNELS}
+        terms.append(render_weight * rendering_loss(pred, truth, tuple(OUT_CHANNELS), lights, batch["points"]))
     return sum(terms)
+
+
+def render_lights(g: torch.Generator, batch: int, count: int) -> LightSet:
+    """The rendering term's novel lights: ``count`` isotropic point lights per sample over
+    the hemisphere above 10°, 225–450 mm away, seen by a camera 225 mm above the centre
+    (:func:`matscan.losses.novel_lights`)."""
+    from matscan.losses import novel_lights
+
+    return novel_lights(batch, count, 225.0, (0.0, 0.0, 225.0), g)
 
 
 # --- training ----------------------------------------------------------------------------------
@@ -418,6 +442,9 @@ class TrainAnyRig:
     # ... only in samples of at least this many photos: one photo cannot show that its light
     # is not the one named, so miscalibrating it teaches nothing the network could use
     miscal_min_photos: int = 1
+    # the rendering term's weight (0: none; the paper's λ_r is 1/24) and its novel lights per sample
+    render_weight: float = 0.0
+    render_lights: int = 8
 
 
 CHECKPOINT = "checkpoint.safetensors"
@@ -488,6 +515,11 @@ def train(
         )
     if cfg.miscal_min_photos < 1:
         raise MatscanError(f"--miscal-from: {cfg.miscal_min_photos!r} must be a number of photos, at least 1")
+    if not (0 <= cfg.render_weight < 100 and 1 <= cfg.render_lights <= 64):
+        raise MatscanError(
+            f"--render-weight, --render-lights: {cfg.render_weight!r}, {cfg.render_lights!r} must be a weight in "
+            "[0, 100) and 1 to 64 lights"
+        )
     library = read_library(cfg.library)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -538,7 +570,11 @@ def train(
             t0 = time.perf_counter()
             batch = {k: v.to(device) for k, v in _batch(g, cfg, library).items()}
             present = torch.ones(batch["x"].shape[:2], device=device)
-            value = loss(net(batch["x"], present), batch)
+            novel = None
+            if cfg.render_weight > 0:  # its own generator: the samples are those of a run without it
+                lg = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step + 7)
+                novel = render_lights(lg, batch["x"].shape[0], cfg.render_lights).to(device)
+            value = loss(net(batch["x"], present), batch, cfg.render_weight, novel)
             opt.zero_grad()
             value.backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)

@@ -599,6 +599,8 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
         miscal_degrees=miscal[0],
         miscal_intensity=miscal[1],
         miscal_min_photos=args.miscal_from,
+        render_weight=args.render_weight,
+        render_lights=args.render_lights,
     )
     net_cfg = None if args.ps_skip is None else AnyRigConfig(ps_skip=args.ps_skip)
     result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
@@ -1181,6 +1183,23 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="miscalibrate only samples of at least N photos: a single photo cannot show that its light is off "
         "(default 1: every sample)",
+    )
+    p.add_argument(
+        "--render-weight",
+        dest="render_weight",
+        type=_number(float, 0, 100),
+        default=0.0,
+        metavar="W",
+        help="also judge the maps by rendering them under novel lights, this weight (the paper's λ_r is 0.0417; "
+        "default 0: maps only)",
+    )
+    p.add_argument(
+        "--render-lights",
+        dest="render_lights",
+        type=_number(int, 1, 64),
+        default=8,
+        metavar="K",
+        help="novel lights per sample for --render-weight (default 8)",
     )
     p.add_argument("--device", default="auto", help="auto (CUDA when there is one), cpu or cuda")
     p.add_argument(
