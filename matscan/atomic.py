@@ -30,6 +30,7 @@ import os
 import re
 import secrets
 import shutil
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -258,11 +259,24 @@ def atomic_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
         raise
 
 
+def plain_mode(path: Path) -> int:
+    """The permissions a file written in place at ``path`` would have: those of the file
+    there now, else 0o666 less the process's umask (what ``open(path, "w")`` gives)."""
+    try:
+        return stat.S_IMODE(path.stat().st_mode)
+    except FileNotFoundError:
+        mask = os.umask(0o022)
+        os.umask(mask)
+        return 0o666 & ~mask
+
+
 @contextmanager
 def atomic_file(path: str | Path) -> Iterator[Path]:
     """Yield a temporary file name (same suffix as ``path``) that replaces ``path``
     atomically (``os.replace``) when the block succeeds; removed on failure. Temporaries
-    of ``path`` left by killed writers are removed first (:func:`clean_stale`)."""
+    of ``path`` left by killed writers are removed first (:func:`clean_stale`). The file
+    gets the permissions of :func:`plain_mode`, whatever the writer created it with
+    (safetensors' ``save_file`` creates files readable by their owner only)."""
     path = Path(path)
     tmp = temp_path(path)
     tmp = tmp.with_name(tmp.name + path.suffix)  # writers choose the format by suffix
@@ -272,6 +286,7 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
         yield tmp
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
+        os.chmod(tmp, plain_mode(path))
         os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)

@@ -320,6 +320,35 @@ def test_a_killed_file_writer_leaves_a_temporary_that_the_next_write_removes(tmp
     assert path.read_text() == "whole" and litter(tmp_path) == []
 
 
+def test_atomic_files_get_the_permissions_a_plain_write_would(tmp_path):
+    """safetensors' save_file creates its file for its owner only; written through
+    atomic_file, a new file has what open() gives under the umask, a replaced one keeps its own."""
+    import os
+    import stat
+
+    import torch
+    from safetensors.torch import save_file
+
+    from matscan.atomic import atomic_file
+
+    def mode(p):
+        return stat.S_IMODE(p.stat().st_mode)
+
+    old = os.umask(0o027)
+    try:
+        (tmp_path / "plain.txt").write_text("x")  # the reference: a plain write under this umask
+        new = tmp_path / "weights.safetensors"
+        with atomic_file(new) as tmp:
+            save_file({"a": torch.zeros(2)}, tmp)
+        assert mode(new) == mode(tmp_path / "plain.txt") == 0o640
+        new.chmod(0o604)
+        with atomic_file(new) as tmp:
+            save_file({"a": torch.ones(2)}, tmp)
+        assert mode(new) == 0o604
+    finally:
+        os.umask(old)
+
+
 def test_temporaries_of_a_live_process_are_kept(tmp_path):
     out = tmp_path / "out"
     mine = tmp_path / f".out.matscan-tmp-{os.getppid()}-0badcafe"  # our parent process is alive
