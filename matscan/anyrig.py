@@ -502,7 +502,7 @@ def train(
     from safetensors.torch import load_file, save_file
     from tqdm import tqdm
 
-    from matscan.atomic import atomic_file
+    from matscan.atomic import atomic_file, write_text
     from matscan.materials.procedural import check_prior
 
     check_prior(cfg.prior)
@@ -557,7 +557,7 @@ def train(
         with atomic_file(ckpt) as tmp:  # a run killed while writing keeps its last checkpoint
             save_file({**tensors, "step": torch.tensor(step)}, tmp)
 
-    (out / "config.json").write_text(json.dumps({"train": asdict(cfg), "net": asdict(net.cfg)}, indent=1))
+    write_text(out / "config.json", json.dumps({"train": asdict(cfg), "net": asdict(net.cfg)}, indent=1))
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
     deadline = time.monotonic() + 60 * minutes

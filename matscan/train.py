@@ -69,7 +69,7 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 from torch.utils.data import DataLoader, Sampler
 
-from matscan.atomic import atomic_file
+from matscan.atomic import atomic_file, write_text
 from matscan.data import DataConfig, SvbrdfDataset, fixed_validation_set
 from matscan.errors import MatscanError, input_error
 from matscan.jsonfile import (
@@ -600,7 +600,7 @@ def train(
                     "use another folder, or the same settings to resume",
                 )
         else:
-            config_path.write_text(json.dumps(asdict(cfg), indent=2) + "\n")
+            write_text(config_path, json.dumps(asdict(cfg), indent=2) + "\n")
     if world > 1:
         torch.distributed.barrier()
     init_record: dict[str, str] = {}
