@@ -11,7 +11,8 @@ photos; never trained on), SIZE² px over the 120 mm field, 8-bit sRGB with read
   any-rig network alone, and the solver alone from flat maps;
 * on both, each network's maps refined by the solver (``+ solver``: the ``lm`` solver
   started from them, held near them with the strength ``reconstruct`` uses: 1 for the
-  dome24 networks, ``FLAT_START_PRIOR`` for the any-rig network, as ``--anyrig`` does);
+  dome24 networks, ``ANYRIG_HOLD`` for the any-rig network, as ``--anyrig`` does;
+  ``--anyrig-hold S`` tries another, here and in ``reconstruct`` on rti-icon);
 * the real RTI capture tests/data/rti-icon (72 photos, handheld light, `.lp` directions;
   every 4th photo held out, the fit from 3, 6, 12, 24 or all 54 of the others spread
   evenly): PSNR and SSIM of the 18 held-out photos as displayed, for ``reconstruct``
@@ -51,8 +52,18 @@ than the ones its captures name (:func:`matscan.anyrig.miscalibrated`: each turn
 |N(0, DEG)| degrees, scaled by 1 + N(0, REL)), as a handheld light or a dome whose LEDs
 are not where its file says makes them.
 
+With ``--hold`` (about 5 minutes): how hard the solver should hold the network's maps,
+chosen on data that neither the unseen dome nor rti-icon is: 8 procedural materials of
+prior v2 that training never drew, 128², photographed by a tuning dome of near LEDs
+(32 at 300 mm on rings at 15°, 35°, 55° and 75°, a perspective camera 300 mm up) from 2,
+3, 6 and 12 of its lights, the network's maps refined by the solver held with strengths
+0.2 (the flat start's ``FLAT_START_PRIOR``) to 4 (1 is what the dome24 networks
+get); printed: novel-light RMSE (16 lights, :func:`matscan.evaluate.evaluation_lights`)
+per strength and count, the network alone, and each strength's mean ratio to 0.2 over
+the counts.
+
 Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
-[--miscalibration 3,0.1] [--procedural] [--starts] [--subsets K]
+[--miscalibration 3,0.1] [--procedural] [--starts] [--subsets K] [--hold] [--anyrig-hold S]
 (``WEIGHTS SIZE`` also works; ``WEIGHTS:raw`` scores a checkpoint's raw weights where it
 also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` scores)
 """
@@ -60,11 +71,13 @@ also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` score
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 
 import torch
 
+import matscan.reconstruct.job as job
 from matscan.anyrig import load, miscalibrated, photo_input, predict_capture, ps_estimate
 from matscan.capture import Capture
 from matscan.capture.virtual import CameraModel, simulate_images
@@ -74,11 +87,10 @@ from matscan.materials.artist import ARTIST_NAMES, artist_material
 from matscan.materials.photos import TINTS, photo_material
 from matscan.materials.procedural import random_material
 from matscan.reconstruct import ReconstructConfig, reconstruct_capture
-from matscan.reconstruct.job import FLAT_START_PRIOR
 from matscan.reconstruct.networks import predict_maps
 from matscan.reconstruct.solver import solve_maps
 from matscan.render import render_maps, surface_points
-from matscan.rig import builtin_rig
+from matscan.rig import Camera, Light, Rig, builtin_rig
 from matscan.weights import load_model
 
 sys.path.insert(0, "bench")
@@ -214,8 +226,14 @@ def main() -> None:
     parser.add_argument(
         "--subsets", type=int, default=0, metavar="K", help="rti-icon from K interleaved choices of 3, 6, 12 photos"
     )
+    parser.add_argument(
+        "--anyrig-hold", type=float, default=None, metavar="S", help="the solver's hold on the any-rig network's maps"
+    )
+    parser.add_argument("--hold", action="store_true", help="the solver's hold on the network's maps, on a tuning dome")
     args = parser.parse_args()
     off = tuple(float(v) for v in args.miscalibration.split(","))
+    if args.anyrig_hold is not None:
+        job.ANYRIG_HOLD = args.anyrig_hold  # reconstruct_capture reads it at each call
     if len(args.weights) > 1 and args.weights[-1].isdigit():  # the older form: WEIGHTS SIZE
         args.size = int(args.weights.pop())
     if args.networks_only:
@@ -226,6 +244,9 @@ def main() -> None:
         return
     if args.subsets:
         subsets_of(args.weights, args.subsets)
+        return
+    if args.hold:
+        hold(load_spec(args.weights[0]), args.size)
         return
     weights, size = args.weights[0], args.size
     anyrig = load_spec(weights)
@@ -247,7 +268,7 @@ def main() -> None:
             start = MapSet(**predict_capture(anyrig, cap))
             rows.setdefault(("dome24", count, "any-rig network"), []).append(scores(start, maps, lights, dome.field_mm))
             rows.setdefault(("dome24", count, "any-rig + solver"), []).append(
-                scores(refined(start, cap, FLAT_START_PRIOR), maps, lights, dome.field_mm)
+                scores(refined(start, cap, job.ANYRIG_HOLD), maps, lights, dome.field_mm)
             )
         for count in (1, 2, 3, 6, 12):
             cap = capture_of(maps, rti, spread(len(TRAIN), count), seed=i, off=off)
@@ -257,7 +278,7 @@ def main() -> None:
                 scores(start, maps, lights, rti.field_mm)
             )
             rows.setdefault(("RTI dome (unseen)", str(count), "any-rig + solver"), []).append(
-                scores(refined(start, cap, FLAT_START_PRIOR), maps, lights, rti.field_mm)
+                scores(refined(start, cap, job.ANYRIG_HOLD), maps, lights, rti.field_mm)
             )
             res = reconstruct_capture(cap, ReconstructConfig(model="none", refine="on"))
             rows.setdefault(("RTI dome (unseen)", str(count), "solver alone"), []).append(
@@ -364,6 +385,48 @@ def subsets_of(specs: list[str], subsets: int) -> None:
     print(f"rti-icon subsets in {time.perf_counter() - t0:.0f} s")
 
 
+HOLDS = (0.2, 0.5, 1.0, 2.0, 4.0)
+
+
+def tuning_dome() -> Rig:
+    """``--hold``'s rig: 32 LEDs at 300 mm on rings at 15°, 35°, 55° and 75° (each ring
+    turned 22.5° from the last), aimed at the centre, a perspective camera 300 mm up."""
+    lights = []
+    for ring, elevation in enumerate((15.0, 35.0, 55.0, 75.0)):
+        e = math.radians(elevation)
+        for k in range(8):
+            a = math.radians(45.0 * k + 22.5 * ring)
+            lights.append(
+                Light(position_mm=(300 * math.cos(e) * math.cos(a), 300 * math.cos(e) * math.sin(a), 300 * math.sin(e)))
+            )
+    return Rig("tuning32", 300.0, Camera(position_mm=(0.0, 0.0, 300.0)), (120.0, 120.0), tuple(lights))
+
+
+def hold(anyrig, size: int) -> None:
+    """``--hold``: novel-light RMSE of the network's maps refined with each strength (module doc)."""
+    t0 = time.perf_counter()
+    rig = tuning_dome()
+    lights = evaluation_lights(rig)
+    counts = (2, 3, 6, 12)
+    rmse: dict[tuple[str, int], list[float]] = {}
+    for i, maps in enumerate(materials_of(size, procedural=True)):
+        for count in counts:
+            cap = capture_of(maps, rig, spread(len(rig.lights), count), seed=i)
+            start = MapSet(**predict_capture(anyrig, cap))
+            rmse.setdefault(("network alone", count), []).append(scores(start, maps, lights, rig.field_mm)[0])
+            for s in HOLDS:
+                rmse.setdefault((f"+ solver, hold {s:g}", count), []).append(
+                    scores(refined(start, cap, s), maps, lights, rig.field_mm)[0]
+                )
+    mean = {k: sum(v) / len(v) for k, v in rmse.items()}
+    print(f"tuning dome, 8 procedural materials at {size}², novel-light RMSE")
+    print(f"{'':22s}" + "".join(f"{c:>9d}" for c in counts) + "   mean ratio to hold 0.2")
+    for name in ["network alone"] + [f"+ solver, hold {s:g}" for s in HOLDS]:
+        ratio = sum(mean[(name, c)] / mean[("+ solver, hold 0.2", c)] for c in counts) / len(counts)
+        print(f"{name:22s}" + "".join(f"{mean[(name, c)]:9.4f}" for c in counts) + f"   {ratio:.4f}")
+    print(f"in {time.perf_counter() - t0:.0f} s")
+
+
 MAPS = ("diffuse", "specular", "roughness", "normal")
 HYBRIDS = {
     "flat": (),
@@ -391,7 +454,7 @@ def starts(anyrig) -> None:
         flat, net = flat_start(sub), MapSet(**predict_capture(anyrig, sub))
         for name, keys in HYBRIDS.items():
             start = MapSet(**{k: getattr(net if k in keys else flat, k) for k in MAPS})
-            maps, _, scale = solve_maps(start, sub, ReconstructConfig().lm, FLAT_START_PRIOR)
+            maps, _, scale = solve_maps(start, sub, ReconstructConfig().lm, job.FLAT_START_PRIOR)
             before, after = held_out(start, 1.0), held_out(maps, scale)
             print(
                 f"{count} photos  {name:20s} start {before['psnr_left_out']:.2f}  "
