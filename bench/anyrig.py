@@ -77,7 +77,6 @@ import time
 
 import torch
 
-import matscan.reconstruct.job as job
 from matscan.anyrig import load, miscalibrated, photo_input, predict_capture, ps_estimate
 from matscan.capture import Capture
 from matscan.capture.virtual import CameraModel, simulate_images
@@ -86,7 +85,7 @@ from matscan.mapset import MapSet
 from matscan.materials.artist import ARTIST_NAMES, artist_material
 from matscan.materials.photos import TINTS, photo_material
 from matscan.materials.procedural import random_material
-from matscan.reconstruct import ReconstructConfig, reconstruct_capture
+from matscan.reconstruct import ReconstructConfig, job, reconstruct_capture
 from matscan.reconstruct.networks import predict_maps
 from matscan.reconstruct.solver import solve_maps
 from matscan.render import render_maps, surface_points
