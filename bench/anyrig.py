@@ -43,7 +43,8 @@ With ``--subsets K`` (about 3 minutes for K = 6 and three networks): rti-icon fr
 and 12 photos, K interleaved choices of them per count (no photo in two choices), flat
 maps and ``--anyrig`` with each WEIGHTS given; printed: the held-out PSNR's mean and
 standard deviation over the choices, and each network's paired difference from flat maps
-(mean, standard deviation, and in how many choices it is higher). One choice of 3 photos
+(mean, standard deviation, and in how many choices it is higher); ``--counts`` takes
+other counts (no photo is in two choices while count × K ≤ 54). One choice of 3 photos
 decides little: over 6 choices of 3 photos, flat maps' PSNR has a standard deviation of
 1.4 dB.
 
@@ -63,7 +64,8 @@ per strength and count, the network alone, and each strength's mean ratio to 0.2
 the counts.
 
 Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
-[--miscalibration 3,0.1] [--procedural] [--starts] [--subsets K] [--hold] [--anyrig-hold S]
+[--miscalibration 3,0.1] [--procedural] [--starts] [--subsets K [--counts 3,6,12]] [--hold]
+[--anyrig-hold S]
 (``WEIGHTS SIZE`` also works; ``WEIGHTS:raw`` scores a checkpoint's raw weights where it
 also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` scores)
 """
@@ -225,6 +227,7 @@ def main() -> None:
     parser.add_argument(
         "--subsets", type=int, default=0, metavar="K", help="rti-icon from K interleaved choices of 3, 6, 12 photos"
     )
+    parser.add_argument("--counts", default="3,6,12", help="--subsets: the photo counts (default 3,6,12)")
     parser.add_argument(
         "--anyrig-hold", type=float, default=None, metavar="S", help="the solver's hold on the any-rig network's maps"
     )
@@ -242,7 +245,7 @@ def main() -> None:
         starts(load_spec(args.weights[0]))
         return
     if args.subsets:
-        subsets_of(args.weights, args.subsets)
+        subsets_of(args.weights, args.subsets, tuple(int(c) for c in args.counts.split(",")))
         return
     if args.hold:
         hold(load_spec(args.weights[0]), args.size)
@@ -346,7 +349,7 @@ def phased(rest: list[int], count: int, k: int, subsets: int) -> list[int]:
     return [rest[int((j + (k + 0.5) / subsets) * len(rest) / count)] for j in range(count)]
 
 
-def subsets_of(specs: list[str], subsets: int) -> None:
+def subsets_of(specs: list[str], subsets: int, counts: tuple[int, ...] = (3, 6, 12)) -> None:
     """``--subsets K``: rti-icon from 3, 6 and 12 photos, K interleaved choices of them
     each, flat maps against every WEIGHTS's ``--anyrig`` (module doc)."""
     from matscan.reconstruct.job import display, photo_scores
@@ -357,7 +360,7 @@ def subsets_of(specs: list[str], subsets: int) -> None:
     nets = [load_spec(s) for s in specs]
     print(f"rti-icon, 18 photos held out, {subsets} choices of the others per count: held-out PSNR (dB)")
     print(f"{'photos':>6s} {'start':48s} {'mean':>6s} {'sd':>5s}  {'− flat: mean':>12s} {'sd':>5s} {'wins':>5s}")
-    for count in (3, 6, 12):
+    for count in counts:
         psnr: dict[str, list[float]] = {}
         for k in range(subsets):
             sub = cap.select(phased(rest, count, k, subsets))
