@@ -11,7 +11,7 @@ photos; never trained on), SIZE² px over the 120 mm field, 8-bit sRGB with read
   any-rig network alone, and the solver alone from flat maps;
 * on both, each network's maps refined by the solver (``+ solver``: the ``lm`` solver
   started from them, held near them with the strength ``reconstruct`` uses: 1 for the
-  dome24 networks, ``ANYRIG_HOLD`` for the any-rig network, as ``--anyrig`` does;
+  dome24 networks, ``anyrig_hold`` of the photo count for the any-rig network, as ``--anyrig`` does;
   ``--anyrig-hold S`` tries another, here and in ``reconstruct`` on rti-icon);
 * the real RTI capture tests/data/rti-icon (72 photos, handheld light, `.lp` directions;
   every 4th photo held out, the fit from 3, 6, 12, 24 or all 54 of the others spread
@@ -53,19 +53,25 @@ than the ones its captures name (:func:`matscan.anyrig.miscalibrated`: each turn
 |N(0, DEG)| degrees, scaled by 1 + N(0, REL)), as a handheld light or a dome whose LEDs
 are not where its file says makes them.
 
-With ``--hold`` (about 5 minutes): how hard the solver should hold the network's maps,
-chosen on data that neither the unseen dome nor rti-icon is: 8 procedural materials of
-prior v2 that training never drew, 128², photographed by a tuning dome of near LEDs
-(32 at 300 mm on rings at 15°, 35°, 55° and 75°, a perspective camera 300 mm up) from 2,
-3, 6 and 12 of its lights, the network's maps refined by the solver held with strengths
-0.2 (the flat start's ``FLAT_START_PRIOR``) to 4 (1 is what the dome24 networks
-get); printed: novel-light RMSE (16 lights, :func:`matscan.evaluate.evaluation_lights`)
-per strength and count, the network alone, and each strength's mean ratio to 0.2 over
-the counts.
+With ``--hold [--library DIR]`` (about 30 s; 4 minutes with a library of 20): how hard
+the solver should hold the network's maps, chosen on data that neither the unseen dome
+nor rti-icon is: 8 procedural materials of prior v2 that training never drew, and with
+``--library`` every map set in DIR (``tools/photo_library.py``'s, say), centre crops of
+SIZE², photographed by a tuning dome of near LEDs (32 at 300 mm on rings at 15°, 35°, 55°
+and 75°, a perspective camera 300 mm up) from 2, 3, 6, 12 and 24 of its lights, the
+network's maps refined by the solver held with strengths 0.2 (the flat start's
+``FLAT_START_PRIOR``) to 4 (1 is what the dome24 networks get); printed per group:
+novel-light RMSE (16 lights, :func:`matscan.evaluate.evaluation_lights`) per strength
+and count, and the network alone; then each strength's ratio to 0.2 (the mean of the
+groups' ratios), the best strength per count, and those as an ``--anyrig-hold``
+schedule (up to the geometric mean of two neighbouring counts the lower one's).
+
+With ``--anyrig-hold S`` or ``N:S,...,S``: the any-rig network's maps held with S, or with
+S up to N photos (:data:`matscan.reconstruct.job.ANYRIG_HOLD`), everywhere in the bench.
 
 Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
 [--miscalibration 3,0.1] [--procedural] [--starts] [--subsets K [--counts 3,6,12]] [--hold]
-[--anyrig-hold S]
+[--library DIR] [--anyrig-hold S]
 (``WEIGHTS SIZE`` also works; ``WEIGHTS:raw`` scores a checkpoint's raw weights where it
 also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` scores)
 """
@@ -229,13 +235,17 @@ def main() -> None:
     )
     parser.add_argument("--counts", default="3,6,12", help="--subsets: the photo counts (default 3,6,12)")
     parser.add_argument(
-        "--anyrig-hold", type=float, default=None, metavar="S", help="the solver's hold on the any-rig network's maps"
+        "--anyrig-hold",
+        default=None,
+        metavar="S",
+        help="the solver's hold on the any-rig network's maps: S, or N:S,...,S by photo count",
     )
+    parser.add_argument("--library", default=None, help="--hold: a folder of map sets to tune on as well")
     parser.add_argument("--hold", action="store_true", help="the solver's hold on the network's maps, on a tuning dome")
     args = parser.parse_args()
     off = tuple(float(v) for v in args.miscalibration.split(","))
     if args.anyrig_hold is not None:
-        job.ANYRIG_HOLD = args.anyrig_hold  # reconstruct_capture reads it at each call
+        job.ANYRIG_HOLD = hold_schedule(args.anyrig_hold)  # reconstruct_capture reads it at each call
     if len(args.weights) > 1 and args.weights[-1].isdigit():  # the older form: WEIGHTS SIZE
         args.size = int(args.weights.pop())
     if args.networks_only:
@@ -248,7 +258,7 @@ def main() -> None:
         subsets_of(args.weights, args.subsets, tuple(int(c) for c in args.counts.split(",")))
         return
     if args.hold:
-        hold(load_spec(args.weights[0]), args.size)
+        hold(load_spec(args.weights[0]), args.size, args.library)
         return
     weights, size = args.weights[0], args.size
     anyrig = load_spec(weights)
@@ -270,7 +280,7 @@ def main() -> None:
             start = MapSet(**predict_capture(anyrig, cap))
             rows.setdefault(("dome24", count, "any-rig network"), []).append(scores(start, maps, lights, dome.field_mm))
             rows.setdefault(("dome24", count, "any-rig + solver"), []).append(
-                scores(refined(start, cap, job.ANYRIG_HOLD), maps, lights, dome.field_mm)
+                scores(refined(start, cap, job.anyrig_hold(len(cap.files))), maps, lights, dome.field_mm)
             )
         for count in (1, 2, 3, 6, 12):
             cap = capture_of(maps, rti, spread(len(TRAIN), count), seed=i, off=off)
@@ -280,7 +290,7 @@ def main() -> None:
                 scores(start, maps, lights, rti.field_mm)
             )
             rows.setdefault(("RTI dome (unseen)", str(count), "any-rig + solver"), []).append(
-                scores(refined(start, cap, job.ANYRIG_HOLD), maps, lights, rti.field_mm)
+                scores(refined(start, cap, job.anyrig_hold(len(cap.files))), maps, lights, rti.field_mm)
             )
             res = reconstruct_capture(cap, ReconstructConfig(model="none", refine="on"))
             rows.setdefault(("RTI dome (unseen)", str(count), "solver alone"), []).append(
@@ -388,6 +398,7 @@ def subsets_of(specs: list[str], subsets: int, counts: tuple[int, ...] = (3, 6, 
 
 
 HOLDS = (0.2, 0.5, 1.0, 2.0, 4.0)
+HOLD_COUNTS = (2, 3, 6, 12, 24)
 
 
 def tuning_dome() -> Rig:
@@ -404,28 +415,57 @@ def tuning_dome() -> Rig:
     return Rig("tuning32", 300.0, Camera(position_mm=(0.0, 0.0, 300.0)), (120.0, 120.0), tuple(lights))
 
 
-def hold(anyrig, size: int) -> None:
-    """``--hold``: novel-light RMSE of the network's maps refined with each strength (module doc)."""
+def hold_schedule(spec: str) -> tuple[tuple[float, float], ...]:
+    """``--anyrig-hold``: "S" (one strength) or "N:S,N:S,...,S" (up to N photos S, the last
+    for any count), as :data:`matscan.reconstruct.job.ANYRIG_HOLD`."""
+    parts = spec.split(",")
+    pairs = [tuple(float(v) for v in p.split(":")) for p in parts[:-1]]
+    return (*pairs, (math.inf, float(parts[-1])))
+
+
+def hold(anyrig, size: int, library: str | None) -> None:
+    """``--hold``: novel-light RMSE of the network's maps refined with each strength, and
+    per count the strength that does best (module doc)."""
+    from pathlib import Path
+
+    from matscan.anyrig import read_library
+
     t0 = time.perf_counter()
     rig = tuning_dome()
     lights = evaluation_lights(rig)
-    counts = (2, 3, 6, 12)
-    rmse: dict[tuple[str, int], list[float]] = {}
-    for i, maps in enumerate(materials_of(size, procedural=True)):
-        for count in counts:
-            cap = capture_of(maps, rig, spread(len(rig.lights), count), seed=i)
-            start = MapSet(**predict_capture(anyrig, cap))
-            rmse.setdefault(("network alone", count), []).append(scores(start, maps, lights, rig.field_mm)[0])
-            for s in HOLDS:
-                rmse.setdefault((f"+ solver, hold {s:g}", count), []).append(
-                    scores(refined(start, cap, s), maps, lights, rig.field_mm)[0]
-                )
-    mean = {k: sum(v) / len(v) for k, v in rmse.items()}
-    print(f"tuning dome, 8 procedural materials at {size}², novel-light RMSE")
-    print(f"{'':22s}" + "".join(f"{c:>9d}" for c in counts) + "   mean ratio to hold 0.2")
-    for name in ["network alone"] + [f"+ solver, hold {s:g}" for s in HOLDS]:
-        ratio = sum(mean[(name, c)] / mean[("+ solver, hold 0.2", c)] for c in counts) / len(counts)
-        print(f"{name:22s}" + "".join(f"{mean[(name, c)]:9.4f}" for c in counts) + f"   {ratio:.4f}")
+    groups = {"procedural": materials_of(size, procedural=True)}
+    if library:
+        sets = read_library(sorted(p for p in Path(library).iterdir() if p.is_dir()))
+        groups["library"] = [m.crop((m.size[0] - size) // 2, (m.size[1] - size) // 2, size, size) for m in sets]
+    names = ["network alone"] + [f"hold {s:g}" for s in HOLDS]
+    mean: dict[tuple[str, str, int], float] = {}
+    for group, materials in groups.items():
+        rmse: dict[tuple[str, int], list[float]] = {}
+        for i, maps in enumerate(materials):
+            for count in HOLD_COUNTS:
+                cap = capture_of(maps, rig, spread(len(rig.lights), count), seed=i)
+                start = MapSet(**predict_capture(anyrig, cap))
+                rmse.setdefault(("network alone", count), []).append(scores(start, maps, lights, rig.field_mm)[0])
+                for s in HOLDS:
+                    rmse.setdefault((f"hold {s:g}", count), []).append(
+                        scores(refined(start, cap, s), maps, lights, rig.field_mm)[0]
+                    )
+        mean |= {(group, *k): sum(v) / len(v) for k, v in rmse.items()}
+        print(f"tuning dome, {len(materials)} {group} materials at {size}², novel-light RMSE")
+        print(f"{'':16s}" + "".join(f"{c:>9d}" for c in HOLD_COUNTS))
+        for name in names:
+            print(f"{name:16s}" + "".join(f"{mean[(group, name, c)]:9.4f}" for c in HOLD_COUNTS))
+    print("ratio to hold 0.2, mean over the groups")
+    best = []
+    for name in names:
+        ratios = [sum(mean[(g, name, c)] / mean[(g, "hold 0.2", c)] for g in groups) / len(groups) for c in HOLD_COUNTS]
+        print(f"{name:16s}" + "".join(f"{r:9.4f}" for r in ratios))
+        best.append(ratios)
+    picks = [HOLDS[min(range(len(HOLDS)), key=lambda j, k=k: best[j + 1][k])] for k in range(len(HOLD_COUNTS))]
+    tops = [math.sqrt(a * b) for a, b in zip(HOLD_COUNTS, HOLD_COUNTS[1:], strict=False)]
+    spec = [f"{top:.2f}:{s:g}" for top, s, nxt in zip(tops, picks, picks[1:], strict=False) if s != nxt]
+    spec.append(f"{picks[-1]:g}")
+    print(f"best per count: {dict(zip(HOLD_COUNTS, picks, strict=True))}; --anyrig-hold {','.join(spec)}")
     print(f"in {time.perf_counter() - t0:.0f} s")
 
 

@@ -131,8 +131,17 @@ class Result:
 #: Prior strength of the ``lm`` solver when it starts from flat maps (no networks):
 #: the start knows nothing, so the photos decide nearly everything.
 FLAT_START_PRIOR = 0.2
-#: Prior strength of the ``lm`` solver when it starts from the any-rig network's maps.
-ANYRIG_HOLD = FLAT_START_PRIOR
+#: Prior strength of the ``lm`` solver when it starts from the any-rig network's maps, by
+#: the capture's photo count: (up to this many photos, strength), in order
+#: (:func:`anyrig_hold`).
+ANYRIG_HOLD: tuple[tuple[float, float], ...] = ((math.inf, FLAT_START_PRIOR),)
+
+
+def anyrig_hold(photos: int) -> float:
+    """The solver's hold on the any-rig network's maps from ``photos`` photos (``ANYRIG_HOLD``)."""
+    return next(strength for top, strength in ANYRIG_HOLD if photos <= top)
+
+
 #: The any-rig network starts the solver from this many photos up. From one photo every
 #: any-rig network trained so far started it worse than flat maps on the unseen simulated
 #: dome (novel-light RMSE 0.1273, 0.1404, 0.1604 against 0.1209), while from 2 to 12
@@ -315,7 +324,7 @@ def reconstruct_capture(
     networks the solver starts from the maps of ``anyrig`` (an any-rig network, which
     reads any rig) when given and there are at least ``ANYRIG_MIN_PHOTOS`` photos, else
     from flat maps, and refines them (``refine`` "auto" or "on") held near them with
-    ``ANYRIG_HOLD`` or the flat start's weak prior (``FLAT_START_PRIOR``; docs/rti.md
+    :func:`anyrig_hold` or the flat start's weak prior (``FLAT_START_PRIOR``; docs/rti.md
     measures both starts)."""
     if cfg.self_calibrate:
         from matscan.reconstruct.selfcal import estimate_gains, with_gains
@@ -382,7 +391,7 @@ def reconstruct_capture(
     result = Result(start, warnings, timings, start=begun, mirrors=views if nets is not None else 0)
     if refine and cfg.solver == "lm" and not cfg.emissive:
         t0 = time.perf_counter()
-        strength = 1.0 if used_nets else ANYRIG_HOLD if begun == "any-rig network" else FLAT_START_PRIOR
+        strength = 1.0 if used_nets else anyrig_hold(n) if begun == "any-rig network" else FLAT_START_PRIOR
         result.maps, result.confidence, result.intensity_scale = solve_maps(
             start, capture, cfg.lm, strength, progress=progress
         )
