@@ -133,8 +133,11 @@ class Result:
 FLAT_START_PRIOR = 0.2
 #: Prior strength of the ``lm`` solver when it starts from the any-rig network's maps, by
 #: the capture's photo count: (up to this many photos, strength), in order
-#: (:func:`anyrig_hold`).
-ANYRIG_HOLD: tuple[tuple[float, float], ...] = ((math.inf, FLAT_START_PRIOR),)
+#: (:func:`anyrig_hold`). Tuned per count on a dome neither benchmark uses, procedural and
+#: photo-built materials (``bench/anyrig.py --hold``): from 2 to 4 photos holding the
+#: network's maps hard is 3–4% better than the flat start's hold, from 6 up the photos
+#: should decide (runs/anyrig-render3-cpu/README.md, the fourth rule).
+ANYRIG_HOLD: tuple[tuple[float, float], ...] = ((2.45, 2.0), (4.24, 4.0), (math.inf, FLAT_START_PRIOR))
 
 
 def anyrig_hold(photos: int) -> float:
