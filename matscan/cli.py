@@ -743,10 +743,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--anyrig",
         default="none",
-        metavar="WEIGHTS|none",
-        help="an any-rig network (the weights.safetensors or checkpoint of a matscan train-anyrig run) whose maps "
-        "the solver starts from on rigs "
-        "the model does not read (another dome, a flash), from 2 photos; default none: flat maps",
+        metavar="default|WEIGHTS|none",
+        help="an any-rig network whose maps the solver starts from on rigs the model does not read (another dome, "
+        "a flash), from 2 photos: default (the shipped one), or the weights.safetensors or checkpoint of a matscan "
+        "train-anyrig run; default none: flat maps",
     )
     p.add_argument(
         "--refine",
@@ -1115,7 +1115,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--retry-failed", dest="retry_failed", action="store_true", help="run the failed captures again")
     p.add_argument("--redo", action="store_true", help="recompute every capture, finished ones too")
     p.add_argument("--model", default="default", help="shipped model name, a .safetensors file, or none")
-    p.add_argument("--anyrig", default="none", metavar="WEIGHTS|none", help="as for reconstruct")
+    p.add_argument("--anyrig", default="none", metavar="default|WEIGHTS|none", help="as for reconstruct")
     p.add_argument("--refine", default="auto", choices=["auto", "on", "off"], help="as for reconstruct")
     p.add_argument("--solver", default="lm", choices=["lm", "adam"], help="as for reconstruct")
     p.add_argument("--validate", type=non_negative_int, default=0, metavar="K", help="leave K photos out of each")

@@ -252,6 +252,9 @@ def main() -> int:
         f"File: `matscan/weights/{weights.name}` ({weights.stat().st_size / 2**20:.1f} MiB, {params:,} parameters "
         "in four networks, float32, safetensors).",
         "",
+        "The any-rig network shipped beside it (`reconstruct --anyrig default`) has its own card: "
+        "[model-card-anyrig.md](model-card-anyrig.md).",
+        "",
         "## How it was trained",
         "",
         f"- Command: `{train_cmd}` (resumed across sessions; the run's `config.json` holds every setting), "

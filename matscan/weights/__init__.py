@@ -2,6 +2,9 @@
 
 ``default``: the four map networks for the dome24 rig, ``cpu`` preset, trained on
 the procedural prior on a 2-core CPU (docs/model-card.md says how and how well).
+
+Any-rig ``default``: the network that reads any rig (:mod:`matscan.anyrig`), used where
+``reconstruct --anyrig default`` is asked for (docs/model-card.md, "The any-rig network").
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from matscan.jsonfile import short_repr
 
 ROOT = Path(__file__).parent
 SHIPPED = {"default": "dome24-cpu.safetensors"}
+ANYRIG_SHIPPED = {"default": "anyrig-cpu.safetensors"}
 
 
 def model_path(name_or_path: str | Path) -> Path:
@@ -42,20 +46,26 @@ def load_model(name_or_path: str | Path = "default"):
     return load_weights(model_path(name_or_path))
 
 
-def anyrig_path(path: str | Path) -> Path:
-    """The weights file of an any-rig network (:mod:`matscan.anyrig`; none is shipped yet:
-    docs/rti.md says why), checked to exist."""
-    text = str(path)
+def anyrig_path(name_or_path: str | Path) -> Path:
+    """The weights file of a shipped any-rig network's name (:mod:`matscan.anyrig`), or the
+    given path to one, checked to exist."""
+    text = str(name_or_path)
     if not text or not text.isprintable():
-        raise MatscanError(f"anyrig: {short_repr(text)} is not a usable file name")
+        raise MatscanError(f"anyrig: {short_repr(text)} is not a network name or a usable file name")
+    if text in ANYRIG_SHIPPED:
+        path = ROOT / ANYRIG_SHIPPED[text]
+        if not path.is_file():
+            raise MatscanError(f"anyrig {text!r}: its weights ({path.name}) are not in this installation")
+        return path
     if not Path(text).is_file():
-        raise MatscanError(f"anyrig: no such weights file {text!r} (an any-rig checkpoint, or none)")
+        names = ", ".join(ANYRIG_SHIPPED)
+        raise MatscanError(f"anyrig: no such weights file {text!r}, nor a shipped network ({names})")
     return Path(text)
 
 
-def load_anyrig(path: str | Path):
-    """The any-rig network (eval mode) of a weights or checkpoint file; a damaged or
-    foreign file is a one-line error naming it."""
+def load_anyrig(name_or_path: str | Path = "default"):
+    """The any-rig network (eval mode) of a shipped name, or of a weights or checkpoint
+    file; a damaged or foreign file is a one-line error naming it."""
     from matscan.anyrig import load
 
-    return load(anyrig_path(path))
+    return load(anyrig_path(name_or_path))
