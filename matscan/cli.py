@@ -168,13 +168,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
     w, h = rec["size_px"]
     return (
         f"reconstruct: wrote maps of {w}×{h} px ({rec['mm_per_pixel'][0]:.3f} mm/px) from {len(rec['inputs'])} photos "
-        f"to {args.out}; model {rec['model']['name']}, refined {'yes' if rec['refined'] else 'no'}"
-        + _choice_note(rec.get("choice"))
-        + "; "
+        f"to {args.out}; model {rec['model']['name']}, started from {START_NAMES[rec['start']]}, "
+        f"refined {'yes' if rec['refined'] else 'no'}" + _choice_note(rec.get("choice")) + "; "
         f"re-render RMSE {rec['rerender_rmse']:.4f}"
         + (_validation_summary(rec["validation"]) if "validation" in rec else "")
         + f"; {rec['timings_s']['total_s']:.1f} s"
     )
+
+
+#: How the summary line names where the maps started (``matscan.json``'s ``start``).
+START_NAMES = {"networks": "the networks' maps", "any-rig network": "the any-rig network's maps", "flat": "flat maps"}
 
 
 def cmd_calibrate(args: argparse.Namespace) -> str:

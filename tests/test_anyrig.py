@@ -597,7 +597,7 @@ def test_reconstruct_takes_the_shipped_anyrig_network_by_name(tmp_path, capsys):
     record = json.loads((tmp_path / "a" / "matscan.json").read_text())
     assert record["start"] == "any-rig network"
     assert record["model"]["anyrig_file"].endswith("anyrig-cpu.safetensors")
-    capsys.readouterr()
+    assert "started from the any-rig network's maps, refined yes" in capsys.readouterr().out
     assert main(["reconstruct", str(capture), "--out", str(tmp_path / "b"), "--anyrig", "nonsense"]) == 2
     err = capsys.readouterr().err.strip()
     assert "nor a shipped network (default)" in err and len(err.splitlines()) == 1
