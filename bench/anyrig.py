@@ -27,7 +27,8 @@ sets, made by the same rule from other photos, is nearer the second group).
 With ``--networks-only``: the networks alone, without the solver or rti-icon (about a
 minute): the dome24 networks, each WEIGHTS given (several any-rig networks side by side,
 same photos), and the photometric-stereo estimate that ``--ps-skip`` networks start from
-(its albedo and normals, specular 0.04, roughness 0.5).
+(its albedo and normals, specular 0.04, roughness 0.5). With ``--table4`` dome24 is
+scored at every Table 4 count (10, 16 and 24 LEDs too), here and in the full bench.
 
 With ``--procedural`` the materials are instead 8 procedural ones of prior v2 (the
 any-rig training's prior) whose seeds, 2^31 and up, training never draws (it draws seeds
@@ -70,7 +71,7 @@ With ``--anyrig-hold S`` or ``N:S,...,S``: the any-rig network's maps held with 
 S up to N photos (:data:`matscan.reconstruct.job.ANYRIG_HOLD`), everywhere in the bench.
 
 Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
-[--miscalibration 3,0.1] [--procedural] [--starts] [--subsets K [--counts 3,6,12]] [--hold]
+[--table4] [--miscalibration 3,0.1] [--procedural] [--starts] [--subsets K [--counts 3,6,12]] [--hold]
 [--library DIR] [--anyrig-hold S]
 (``WEIGHTS SIZE`` also works; ``WEIGHTS:raw`` scores a checkpoint's raw weights where it
 also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` scores)
@@ -189,7 +190,13 @@ def materials_of(size: int, procedural: bool = False) -> list[MapSet]:
     return [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
 
 
-def networks_only(paths: list[str], size: int, off: tuple[float, float] = (0.0, 0.0), procedural: bool = False) -> None:
+def networks_only(
+    paths: list[str],
+    size: int,
+    off: tuple[float, float] = (0.0, 0.0),
+    procedural: bool = False,
+    table4: bool = False,
+) -> None:
     nets, _ = load_model("default")
     anyrigs = [(path, load_spec(path)) for path in paths]
     materials = materials_of(size, procedural)
@@ -198,7 +205,8 @@ def networks_only(paths: list[str], size: int, off: tuple[float, float] = (0.0, 
     rows: dict[tuple, list[tuple[float, float]]] = {}
     t0 = time.perf_counter()
     for i, maps in enumerate(materials):
-        cases = [("dome24", c, dome, dome.subset(c), evaluation_lights(dome)) for c in ("1", "2", "3", "6")]
+        counts = ("1", "2", "3", "6", "10", "16", "24") if table4 else ("1", "2", "3", "6")
+        cases = [("dome24", c, dome, dome.subset(c), evaluation_lights(dome)) for c in counts]
         cases += [("RTI dome (unseen)", str(c), rti, spread(len(TRAIN), c), test.light_set()) for c in (1, 2, 3, 6, 12)]
         for rig_name, count, rig, indices, lights in cases:
             cap = capture_of(maps, rig, indices, seed=i, off=off if rig is rti else (0.0, 0.0))
@@ -228,6 +236,7 @@ def main() -> None:
         help="the unseen dome's photos taken under lights turned by |N(0, DEG)| degrees and scaled by 1 + N(0, REL), "
         "the capture naming the rig's (rti-icon and dome24 unchanged)",
     )
+    parser.add_argument("--table4", action="store_true", help="dome24 at all of Table 4's counts, 10, 16, 24 too")
     parser.add_argument("--procedural", action="store_true", help="8 procedural materials training never drew")
     parser.add_argument("--starts", action="store_true", help="rti-icon from hybrids of network and flat maps")
     parser.add_argument(
@@ -249,7 +258,7 @@ def main() -> None:
     if len(args.weights) > 1 and args.weights[-1].isdigit():  # the older form: WEIGHTS SIZE
         args.size = int(args.weights.pop())
     if args.networks_only:
-        networks_only(args.weights, args.size, off, args.procedural)
+        networks_only(args.weights, args.size, off, args.procedural, args.table4)
         return
     if args.starts:
         starts(load_spec(args.weights[0]))
@@ -269,7 +278,7 @@ def main() -> None:
     rows: dict[tuple, list[tuple[float, float]]] = {}
     t0 = time.perf_counter()
     for i, maps in enumerate(materials):
-        for count in ("1", "2", "3", "6"):
+        for count in ("1", "2", "3", "6", "10", "16", "24") if args.table4 else ("1", "2", "3", "6"):
             cap = capture_of(maps, dome, dome.subset(count), seed=i)
             lights = evaluation_lights(dome)
             start = predict_maps(nets, cap)
