@@ -598,6 +598,8 @@ def test_reconstruct_takes_the_shipped_anyrig_network_by_name(tmp_path, capsys):
     assert record["start"] == "any-rig network"
     assert record["model"]["anyrig_file"].endswith("anyrig-cpu.safetensors")
     assert "started from the any-rig network's maps, refined yes" in capsys.readouterr().out
+    report = (tmp_path / "a" / "report.html").read_text(encoding="utf-8")
+    assert "maps started from" in report and "anyrig-cpu.safetensors" in report
     assert main(["reconstruct", str(capture), "--out", str(tmp_path / "b"), "--anyrig", "nonsense"]) == 2
     err = capsys.readouterr().err.strip()
     assert "nor a shipped network (default)" in err and len(err.splitlines()) == 1

@@ -159,11 +159,14 @@ def write_report(
         "size (px)": record.get("size_px"),
         "mm per pixel": [round(v, 4) for v in record.get("mm_per_pixel", [])],
         "model": record.get("model", {}).get("name"),
+        "maps started from": record.get("start"),
         "refined": record.get("refined"),
         "re-rendering RMSE (all inputs)": round(overall, 5),
         "intensity scale": round(scale, 4),
         "timings (s)": record.get("timings_s"),
     }
+    if record.get("model", {}).get("anyrig_file"):
+        numbers["any-rig network"] = record["model"]["anyrig_file"]
     if "validation" in record:
         numbers["leave-out validation"] = record["validation"]
     numbers_html = "\n".join(f"<tr><th>{e(k)}</th><td>{e(json.dumps(v))}</td></tr>" for k, v in numbers.items())
