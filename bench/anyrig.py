@@ -30,6 +30,9 @@ same photos), and the photometric-stereo estimate that ``--ps-skip`` networks st
 (its albedo and normals, specular 0.04, roughness 0.5). With ``--table4`` dome24 is
 scored at every Table 4 count (10, 16 and 24 LEDs too), here and in the full bench.
 
+With ``--tilt DEG`` every material lies tilted by DEG degrees toward the azimuth 30° (its
+normals turned, :func:`matscan.anyrig.tilted`), as a sample not lying flat on the stage.
+
 With ``--procedural`` the materials are instead 8 procedural ones of prior v2 (the
 any-rig training's prior) whose seeds, 2^31 and up, training never draws (it draws seeds
 below 2^31); the artist and photo columns are then the first 5 and the last 3 of them.
@@ -71,7 +74,7 @@ With ``--anyrig-hold S`` or ``N:S,...,S``: the any-rig network's maps held with 
 S up to N photos (:data:`matscan.reconstruct.job.ANYRIG_HOLD`), everywhere in the bench.
 
 Run by hand: .venv/bin/python bench/anyrig.py WEIGHTS [WEIGHTS ...] [--size 128] [--networks-only]
-[--table4] [--miscalibration 3,0.1] [--procedural] [--starts] [--subsets K [--counts 3,6,12]] [--hold]
+[--table4] [--tilt DEG] [--miscalibration 3,0.1] [--procedural] [--starts] [--subsets K [--counts 3,6,12]] [--hold]
 [--library DIR] [--anyrig-hold S]
 (``WEIGHTS SIZE`` also works; ``WEIGHTS:raw`` scores a checkpoint's raw weights where it
 also keeps their moving average, ``train-anyrig --ema``, which ``WEIGHTS`` scores)
@@ -183,11 +186,18 @@ def load_spec(spec: str):
     return load(spec)
 
 
-def materials_of(size: int, procedural: bool = False) -> list[MapSet]:
-    """The 8 non-procedural evaluation sets, or 8 procedural materials training never drew."""
+def materials_of(size: int, procedural: bool = False, tilt: float = 0.0) -> list[MapSet]:
+    """The 8 non-procedural evaluation sets, or 8 procedural materials training never drew;
+    with ``tilt`` each lies tilted by that many degrees toward the azimuth 30°."""
+    from dataclasses import replace
+
+    from matscan.anyrig import tilted
+
     if procedural:
-        return [random_material(size, 2**31 + i, prior="v2")[1] for i in range(8)]
-    return [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
+        sets = [random_material(size, 2**31 + i, prior="v2")[1] for i in range(8)]
+    else:
+        sets = [artist_material(n, size) for n in ARTIST_NAMES] + [photo_material(n, size) for n in TINTS]
+    return [replace(m, normal=tilted(m.normal, tilt, 30.0)) for m in sets] if tilt else sets
 
 
 def networks_only(
@@ -196,10 +206,11 @@ def networks_only(
     off: tuple[float, float] = (0.0, 0.0),
     procedural: bool = False,
     table4: bool = False,
+    tilt: float = 0.0,
 ) -> None:
     nets, _ = load_model("default")
     anyrigs = [(path, load_spec(path)) for path in paths]
-    materials = materials_of(size, procedural)
+    materials = materials_of(size, procedural, tilt)
     dome = builtin_rig("dome24")
     rti, test = rti_rig(TRAIN), rti_rig(TEST)
     rows: dict[tuple, list[tuple[float, float]]] = {}
@@ -237,6 +248,7 @@ def main() -> None:
         "the capture naming the rig's (rti-icon and dome24 unchanged)",
     )
     parser.add_argument("--table4", action="store_true", help="dome24 at all of Table 4's counts, 10, 16, 24 too")
+    parser.add_argument("--tilt", type=float, default=0.0, metavar="DEG", help="the materials lie tilted DEG degrees")
     parser.add_argument("--procedural", action="store_true", help="8 procedural materials training never drew")
     parser.add_argument("--starts", action="store_true", help="rti-icon from hybrids of network and flat maps")
     parser.add_argument(
@@ -258,7 +270,7 @@ def main() -> None:
     if len(args.weights) > 1 and args.weights[-1].isdigit():  # the older form: WEIGHTS SIZE
         args.size = int(args.weights.pop())
     if args.networks_only:
-        networks_only(args.weights, args.size, off, args.procedural, args.table4)
+        networks_only(args.weights, args.size, off, args.procedural, args.table4, args.tilt)
         return
     if args.starts:
         starts(load_spec(args.weights[0]))
@@ -272,7 +284,7 @@ def main() -> None:
     weights, size = args.weights[0], args.size
     anyrig = load_spec(weights)
     nets, _ = load_model("default")
-    materials = materials_of(size, args.procedural)
+    materials = materials_of(size, args.procedural, args.tilt)
     dome = builtin_rig("dome24")
     rti, test = rti_rig(TRAIN), rti_rig(TEST)
     rows: dict[tuple, list[tuple[float, float]]] = {}

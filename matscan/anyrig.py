@@ -347,6 +347,7 @@ def sample(
     library_prob: float = 0.5,
     library_metal_prob: float = 0.0,
     miscalibration: tuple[float, float] = (0.0, 0.0),
+    tilt: tuple[float, float] = (0.0, 0.0),
 ) -> dict[str, Tensor]:
     """One training sample: a material (a crop of a 120 mm field) photographed under
     ``photos`` random lights of a random rig, through the camera model. The material is
@@ -354,8 +355,10 @@ def sample(
     a random crop of one of its map sets, metallized (:func:`matscan.data.metallize`)
     with probability ``library_metal_prob``. With ``miscalibration`` (degrees, intensity)
     the photos are taken under :func:`miscalibrated` lights while the network is told the
-    drawn ones. Without a library or miscalibration the draws are those of every earlier
-    run."""
+    drawn ones. With ``tilt`` (degrees, share) that share of samples lies tilted: every
+    normal turned by an angle drawn uniformly up to ``degrees`` about a horizontal axis of
+    random direction (:func:`tilted`). Without a library, miscalibration or tilt the draws
+    are those of every earlier run."""
     from matscan.capture.virtual import CameraModel, apply_camera
     from matscan.data import metallize, random_crop
     from matscan.materials.procedural import random_material
@@ -368,6 +371,10 @@ def sample(
     else:
         seed = int(torch.randint(0, 2**31 - 1, (), generator=g))
         _, maps = random_material(size, seed, prior=prior)
+    if tilt[0] > 0 and float(torch.rand((), generator=g)) < tilt[1]:
+        angle = tilt[0] * float(torch.rand((), generator=g))
+        azimuth = 360.0 * float(torch.rand((), generator=g))
+        maps = replace(maps, normal=tilted(maps.normal, angle, azimuth))
     full = 4 * size
     off = (
         int(torch.randint(0, full - size + 1, (), generator=g)),
@@ -384,6 +391,18 @@ def sample(
     shots = apply_camera(radiance * exposure, camera, g) / exposure
     x = torch.stack([photo_input(shots[k], lights.select([k]), points) for k in range(photos)])
     return {"x": x, "points": points, **{k: getattr(maps, k) for k in OUT_CHANNELS}}
+
+
+def tilted(normal: Tensor, degrees: float, azimuth_degrees: float) -> Tensor:
+    """Normals (3, H, W) of a sample tilted by ``degrees`` toward the azimuth
+    ``azimuth_degrees`` (from +x toward +y): each turned about the horizontal axis
+    perpendicular to that azimuth (Rodrigues' formula), so a flat normal (0, 0, 1) becomes
+    (sin t cos φ, sin t sin φ, cos t)."""
+    t, phi = math.radians(degrees), math.radians(azimuth_degrees)
+    k = torch.tensor([-math.sin(phi), math.cos(phi), 0.0], dtype=normal.dtype).view(3, 1, 1)
+    cross = torch.linalg.cross(k.expand_as(normal), normal, dim=0)
+    dot = (k * normal).sum(0, keepdim=True)
+    return normal * math.cos(t) + cross * math.sin(t) + k * dot * (1 - math.cos(t))
 
 
 def loss(
@@ -445,6 +464,9 @@ class TrainAnyRig:
     # the rendering term's weight (0: none; the paper's λ_r is 1/24) and its novel lights per sample
     render_weight: float = 0.0
     render_lights: int = 8
+    # a share of samples lying tilted, every normal turned by up to this angle (0: none)
+    tilt_degrees: float = 0.0
+    tilt_prob: float = 0.5
 
 
 CHECKPOINT = "checkpoint.safetensors"
@@ -479,6 +501,7 @@ def _batch(g: torch.Generator, cfg: TrainAnyRig, library: Sequence[MapSet] = ())
             cfg.library_prob,
             cfg.library_metal_prob,
             miscal,
+            (cfg.tilt_degrees, cfg.tilt_prob),
         )
         for _ in range(cfg.batch)
     ]

@@ -587,6 +587,9 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
     from matscan.anyrig import AnyRigConfig, TrainAnyRig, train
 
     miscal = _vector(args.miscalibration, 2, "--miscalibration")
+    tilt = _vector(args.tilt, 2, "--tilt")
+    if not (0 <= tilt[0] <= 60 and 0 <= tilt[1] <= 1):
+        raise MatscanError(f"--tilt: {args.tilt!r} is not DEG,SHARE with DEG in 0–60 and SHARE in 0–1")
     cfg = TrainAnyRig(
         size=args.size,
         batch=args.batch,
@@ -604,6 +607,8 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
         miscal_min_photos=args.miscal_from,
         render_weight=args.render_weight,
         render_lights=args.render_lights,
+        tilt_degrees=tilt[0],
+        tilt_prob=tilt[1],
     )
     net_cfg = None if args.ps_skip is None else AnyRigConfig(ps_skip=args.ps_skip)
     result = train(args.out, cfg, minutes=args.minutes, max_steps=args.max_steps, progress=True, net_cfg=net_cfg)
@@ -1203,6 +1208,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=8,
         metavar="K",
         help="novel lights per sample for --render-weight (default 8)",
+    )
+    p.add_argument(
+        "--tilt",
+        default="0,0.5",
+        metavar="DEG,SHARE",
+        help="lay that share of the samples tilted, every normal turned by up to DEG degrees, as a sample not "
+        "lying flat (default 0,0.5: none)",
     )
     p.add_argument("--device", default="auto", help="auto (CUDA when there is one), cpu or cuda")
     p.add_argument(

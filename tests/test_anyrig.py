@@ -603,3 +603,48 @@ def test_reconstruct_takes_the_shipped_anyrig_network_by_name(tmp_path, capsys):
     assert main(["reconstruct", str(capture), "--out", str(tmp_path / "b"), "--anyrig", "nonsense"]) == 2
     err = capsys.readouterr().err.strip()
     assert "nor a shipped network (default)" in err and len(err.splitlines()) == 1
+
+
+def test_tilted_turns_a_flat_normal_to_the_drawn_direction_and_keeps_angles():
+    from matscan.anyrig import tilted
+
+    flat = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, 2, 2).clone()
+    for t, phi in ((15.0, 0.0), (30.0, 120.0), (5.0, 270.0)):
+        got = tilted(flat, t, phi)[:, 0, 0]
+        a, p = math.radians(t), math.radians(phi)
+        want = torch.tensor([math.sin(a) * math.cos(p), math.sin(a) * math.sin(p), math.cos(a)])
+        torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
+    n = torch.randn(3, 5, 7)
+    n = n / n.norm(dim=0, keepdim=True)
+    m = tilted(n, 25.0, 40.0)
+    gram = torch.einsum("cp,cq->pq", n.flatten(1), n.flatten(1))
+    torch.testing.assert_close(torch.einsum("cp,cq->pq", m.flatten(1), m.flatten(1)), gram, atol=1e-5, rtol=0)
+    torch.testing.assert_close(tilted(m, -25.0, 40.0), n, atol=1e-5, rtol=0)
+
+
+def test_a_tilted_sample_is_its_material_turned_as_a_whole():
+    """``train-anyrig --tilt``: a sample's true normals are those of the same material
+    turned by one rotation of at most the given angle; without tilt the draws are the old ones."""
+    from matscan.anyrig import sample
+
+    plain = sample(torch.Generator().manual_seed(3), 16, 2)
+    again = sample(torch.Generator().manual_seed(3), 16, 2, tilt=(0.0, 0.5))
+    for key in plain:
+        torch.testing.assert_close(again[key], plain[key], atol=0, rtol=0)
+    turned = sample(torch.Generator().manual_seed(3), 16, 2, tilt=(20.0, 1.0))
+    a, b = plain["normal"].flatten(1), turned["normal"].flatten(1)
+    r = torch.linalg.lstsq(a.T.double(), b.T.double()).solution.T  # b = r a
+    torch.testing.assert_close((r @ a.double()).float(), b, atol=1e-4, rtol=0)
+    torch.testing.assert_close(r @ r.T, torch.eye(3, dtype=torch.float64), atol=1e-4, rtol=0)
+    angle = math.degrees(math.acos(min(1.0, float(r[2, 2]))))
+    assert 0 < angle <= 20.0 + 1e-3
+
+
+def test_train_anyrig_refuses_a_wild_tilt(tmp_path, capsys):
+    from matscan.cli import main
+
+    for bad in ("90,0.5", "10,2", "10"):
+        assert main(["train-anyrig", "--out", str(tmp_path / "run"), "--tilt", bad, "--max-steps", "1"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "--tilt" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "run").exists()
