@@ -11,7 +11,8 @@ photos; never trained on), SIZE² px over the 120 mm field, 8-bit sRGB with read
   any-rig network alone, and the solver alone from flat maps;
 * on both, each network's maps refined by the solver (``+ solver``: the ``lm`` solver
   started from them, held near them with the strength ``reconstruct`` uses: 1 for the
-  dome24 networks, ``anyrig_hold`` of the photo count for the any-rig network, as ``--anyrig`` does;
+  dome24 networks, ``anyrig_hold`` of the photo count for the any-rig network, as ``--anyrig`` does
+  from 2 photos (from one, ``reconstruct`` starts from flat maps instead);
   ``--anyrig-hold S`` tries another, here and in ``reconstruct`` on rti-icon);
 * the real RTI capture tests/data/rti-icon (72 photos, handheld light, `.lp` directions;
   every 4th photo held out, the fit from 3, 6, 12, 24 or all 54 of the others spread
@@ -39,7 +40,8 @@ below 2^31); the artist and photo columns are then the first 5 and the last 3 of
 
 With ``--starts`` (about 2 minutes): which of the network's maps costs on rti-icon. From
 3 and 6 of its photos the ``lm`` solver is started from hybrids of the network's maps and
-flat maps, held near the start with the flat start's strength as ``--anyrig`` does;
+flat maps, each held near its start with the flat start's strength (what ``--anyrig`` did
+before its hold depended on the photo count), so that the hybrids compare alike;
 printed: the held-out PSNR of the start and of the solved maps, SSIM, and the solved
 specular and roughness means.
 
@@ -57,7 +59,7 @@ than the ones its captures name (:func:`matscan.anyrig.miscalibrated`: each turn
 |N(0, DEG)| degrees, scaled by 1 + N(0, REL)), as a handheld light or a dome whose LEDs
 are not where its file says makes them.
 
-With ``--hold [--library DIR]`` (about 30 s; 4 minutes with a library of 20): how hard
+With ``--hold [--library DIR]`` (about 30 s; 2.5 minutes with a library of 20): how hard
 the solver should hold the network's maps, chosen on data that neither the unseen dome
 nor rti-icon is: 8 procedural materials of prior v2 that training never drew, and with
 ``--library`` every map set in DIR (``tools/photo_library.py``'s, say), centre crops of
@@ -252,7 +254,7 @@ def main() -> None:
     parser.add_argument("--procedural", action="store_true", help="8 procedural materials training never drew")
     parser.add_argument("--starts", action="store_true", help="rti-icon from hybrids of network and flat maps")
     parser.add_argument(
-        "--subsets", type=int, default=0, metavar="K", help="rti-icon from K interleaved choices of 3, 6, 12 photos"
+        "--subsets", type=int, default=0, metavar="K", help="rti-icon from K interleaved choices of --counts photos"
     )
     parser.add_argument("--counts", default="3,6,12", help="--subsets: the photo counts (default 3,6,12)")
     parser.add_argument(
@@ -381,7 +383,7 @@ def phased(rest: list[int], count: int, k: int, subsets: int) -> list[int]:
 
 
 def subsets_of(specs: list[str], subsets: int, counts: tuple[int, ...] = (3, 6, 12)) -> None:
-    """``--subsets K``: rti-icon from 3, 6 and 12 photos, K interleaved choices of them
+    """``--subsets K``: rti-icon from ``counts`` photos (3, 6 and 12), K interleaved choices of them
     each, flat maps against every WEIGHTS's ``--anyrig`` (module doc)."""
     from matscan.reconstruct.job import display, photo_scores
 

@@ -371,7 +371,7 @@ def sample(
     else:
         seed = int(torch.randint(0, 2**31 - 1, (), generator=g))
         _, maps = random_material(size, seed, prior=prior)
-    if tilt[0] > 0 and float(torch.rand((), generator=g)) < tilt[1]:
+    if tilt[0] > 0 and tilt[1] > 0 and float(torch.rand((), generator=g)) < tilt[1]:
         angle = tilt[0] * float(torch.rand((), generator=g))
         azimuth = 360.0 * float(torch.rand((), generator=g))
         maps = replace(maps, normal=tilted(maps.normal, angle, azimuth))
@@ -399,7 +399,7 @@ def tilted(normal: Tensor, degrees: float, azimuth_degrees: float) -> Tensor:
     perpendicular to that azimuth (Rodrigues' formula), so a flat normal (0, 0, 1) becomes
     (sin t cos φ, sin t sin φ, cos t)."""
     t, phi = math.radians(degrees), math.radians(azimuth_degrees)
-    k = torch.tensor([-math.sin(phi), math.cos(phi), 0.0], dtype=normal.dtype).view(3, 1, 1)
+    k = torch.tensor([-math.sin(phi), math.cos(phi), 0.0], dtype=normal.dtype, device=normal.device).view(3, 1, 1)
     cross = torch.linalg.cross(k.expand_as(normal), normal, dim=0)
     dot = (k * normal).sum(0, keepdim=True)
     return normal * math.cos(t) + cross * math.sin(t) + k * dot * (1 - math.cos(t))
@@ -535,6 +535,10 @@ def train(
         raise MatscanError(
             f"--miscalibration: {cfg.miscal_degrees!r}, {cfg.miscal_intensity!r} must be degrees in [0, 45] "
             "and a relative intensity in [0, 1]"
+        )
+    if not (0 <= cfg.tilt_degrees <= 60 and 0 <= cfg.tilt_prob <= 1):
+        raise MatscanError(
+            f"--tilt: {cfg.tilt_degrees!r}, {cfg.tilt_prob!r} must be degrees in [0, 60] and a share in [0, 1]"
         )
     if cfg.miscal_min_photos < 1:
         raise MatscanError(f"--miscal-from: {cfg.miscal_min_photos!r} must be a number of photos, at least 1")

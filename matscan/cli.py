@@ -588,8 +588,6 @@ def cmd_train_anyrig(args: argparse.Namespace) -> str:
 
     miscal = _vector(args.miscalibration, 2, "--miscalibration")
     tilt = _vector(args.tilt, 2, "--tilt")
-    if not (0 <= tilt[0] <= 60 and 0 <= tilt[1] <= 1):
-        raise MatscanError(f"--tilt: {args.tilt!r} is not DEG,SHARE with DEG in 0–60 and SHARE in 0–1")
     cfg = TrainAnyRig(
         size=args.size,
         batch=args.batch,

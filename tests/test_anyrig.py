@@ -572,7 +572,7 @@ def test_the_solver_holds_the_anyrig_maps_by_photo_count(monkeypatch):
         assert seen[-2:] == [strength, job.FLAT_START_PRIOR]
 
 
-def test_reconstruct_from_the_shipped_anyrig_network_finds_a_tilted_plane(tmp_path):
+def test_reconstruct_from_the_shipped_anyrig_network_finds_a_tilted_plane():
     """A plane tilted 15° (the network, trained on samples lying flat, reads it nearly
     flat): from 5 and 9 photos the solver, held loosely, brings the normals within 1° of
     the tilt; from 3, held hard, within 4° (flat maps: 0.5°; docs/rti.md)."""
@@ -636,6 +636,7 @@ def test_a_tilted_sample_is_its_material_turned_as_a_whole():
     r = torch.linalg.lstsq(a.T.double(), b.T.double()).solution.T  # b = r a
     torch.testing.assert_close((r @ a.double()).float(), b, atol=1e-4, rtol=0)
     torch.testing.assert_close(r @ r.T, torch.eye(3, dtype=torch.float64), atol=1e-4, rtol=0)
+    assert abs(float(torch.linalg.det(r)) - 1) < 1e-4  # a rotation, not a mirror
     angle = math.degrees(math.acos(min(1.0, float(r[2, 2]))))
     assert 0 < angle <= 20.0 + 1e-3
 

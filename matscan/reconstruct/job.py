@@ -56,7 +56,9 @@ class ReconstructConfig:
     """How a capture is reconstructed."""
 
     model: str = "default"
-    anyrig: str = "none"  # an any-rig network's weights file, to start from on rigs the model does not read
+    # where the model does not read the rig, start from an any-rig network: "default" (the
+    # shipped one) or a weights file; "none": flat maps
+    anyrig: str = "none"
     refine: str = "auto"  # "auto": by photo count and evidence (reconstruct_capture); "on"; "off"
     solver: str = "lm"  # "lm": second-order, with confidence maps; "adam": first-order (fits emissive too)
     lm: SolverConfig = SolverConfig()
@@ -141,7 +143,9 @@ ANYRIG_HOLD: tuple[tuple[float, float], ...] = ((2.45, 2.0), (4.24, 4.0), (math.
 
 
 def anyrig_hold(photos: int) -> float:
-    """The solver's hold on the any-rig network's maps from ``photos`` photos (``ANYRIG_HOLD``)."""
+    """The solver's hold on the any-rig network's maps from ``photos`` photos (``ANYRIG_HOLD``).
+    Leave-out validation refits from the photos it keeps, so with their count's hold, as a
+    capture of that many photos would be reconstructed."""
     return next(strength for top, strength in ANYRIG_HOLD if photos <= top)
 
 

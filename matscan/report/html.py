@@ -165,7 +165,7 @@ def write_report(
         "intensity scale": round(scale, 4),
         "timings (s)": record.get("timings_s"),
     }
-    if record.get("model", {}).get("anyrig_file"):
+    if record.get("start") == "any-rig network" and record.get("model", {}).get("anyrig_file"):
         numbers["any-rig network"] = record["model"]["anyrig_file"]
     if "validation" in record:
         numbers["leave-out validation"] = record["validation"]

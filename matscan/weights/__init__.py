@@ -4,7 +4,7 @@
 the procedural prior on a 2-core CPU (docs/model-card.md says how and how well).
 
 Any-rig ``default``: the network that reads any rig (:mod:`matscan.anyrig`), used where
-``reconstruct --anyrig default`` is asked for (docs/model-card.md, "The any-rig network").
+``reconstruct --anyrig default`` is asked for (docs/model-card-anyrig.md).
 """
 
 from __future__ import annotations
