@@ -19,16 +19,24 @@ SHIPPED = {"default": "dome24-cpu.safetensors"}
 ANYRIG_SHIPPED = {"default": "anyrig-cpu.safetensors"}
 
 
+def _shipped(text: str, what: str, names: dict[str, str]) -> Path | None:
+    """The file of a shipped name in ``names`` (None for any other text); a name whose file
+    is missing from this installation is a one-line error."""
+    if not text or not text.isprintable():
+        raise MatscanError(f"{what}: {short_repr(text)} is not a name or a usable file name")
+    if text not in names:
+        return None
+    path = ROOT / names[text]
+    if not path.is_file():
+        raise MatscanError(f"{what} {text!r}: its weights ({path.name}) are not in this installation")
+    return path
+
+
 def model_path(name_or_path: str | Path) -> Path:
     """The file of a shipped model name, or the given path to a weights file."""
     text = str(name_or_path)
-    if not text or not text.isprintable():
-        raise MatscanError(f"model: {short_repr(text)} is not a model name or a usable file name")
-    if text in SHIPPED:
-        path = ROOT / SHIPPED[text]
-        if not path.is_file():
-            raise MatscanError(f"model {text!r}: its weights ({path.name}) are not in this installation")
-        return path
+    if (shipped := _shipped(text, "model", SHIPPED)) is not None:
+        return shipped
     path = Path(text)
     if path.suffix != ".safetensors" and not path.is_file():
         raise MatscanError(f"model: {text!r} is neither a shipped model ({', '.join(SHIPPED)}) nor a weights file")
@@ -50,13 +58,8 @@ def anyrig_path(name_or_path: str | Path) -> Path:
     """The weights file of a shipped any-rig network's name (:mod:`matscan.anyrig`), or the
     given path to one, checked to exist."""
     text = str(name_or_path)
-    if not text or not text.isprintable():
-        raise MatscanError(f"anyrig: {short_repr(text)} is not a network name or a usable file name")
-    if text in ANYRIG_SHIPPED:
-        path = ROOT / ANYRIG_SHIPPED[text]
-        if not path.is_file():
-            raise MatscanError(f"anyrig {text!r}: its weights ({path.name}) are not in this installation")
-        return path
+    if (shipped := _shipped(text, "anyrig", ANYRIG_SHIPPED)) is not None:
+        return shipped
     if not Path(text).is_file():
         names = ", ".join(ANYRIG_SHIPPED)
         raise MatscanError(f"anyrig: no such weights file {text!r}, nor a shipped network ({names})")
