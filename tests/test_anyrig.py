@@ -649,3 +649,22 @@ def test_train_anyrig_refuses_a_wild_tilt(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert "--tilt" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "run").exists()
+
+
+def test_batch_passes_the_shipped_anyrig_network_to_every_capture(tmp_path):
+    import json
+
+    pytest.importorskip("distributed")
+    from matscan.cli import main
+
+    captures = []
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        captures.append(str(_rti_capture(tmp_path / name)))
+    assert main(["batch", *captures, "--out", str(tmp_path / "out"), "--anyrig", "default", "--workers", "1"]) == 0
+    records = sorted((tmp_path / "out").glob("*/matscan.json"))
+    assert len(records) == 2
+    for path in records:
+        record = json.loads(path.read_text())
+        assert record["start"] == "any-rig network"
+        assert record["model"]["anyrig_file"].endswith("anyrig-cpu.safetensors")
