@@ -5,17 +5,21 @@ a handheld RTI light is nearer or farther in every photo. With enough photos the
 intensities and the maps are jointly determined up to one overall RGB factor (which
 the albedo absorbs), as semi-calibrated photometric stereo shows. So, alternately:
 
-1. fit the maps to the photos divided by the current gains (the ``lm`` solver from
-   flat maps, on every ``factor``-th pixel of the capture: the gains are global, and
-   a sample of the pixels fits in a fraction of the time);
+1. fit the maps to the photos divided by the current gains (the ``lm`` solver, on every
+   ``factor``-th pixel of the capture: the gains are global, and a sample of the pixels
+   fits in a fraction of the time), holding roughness only weakly near its start
+   (``ROUGHNESS_HOLD``): a lobe width set by the start would make the ratios below
+   depend on the light's elevation;
 2. for each photo and channel, the median ratio of the photo to the rendering of the
    fitted maps over pixels that are unsaturated, lit (rendering above ``LIT``) and mostly
    diffuse (``DIFFUSE_SHARE``), and multiply it in; a photo with too few such pixels
-   (``MIN_SHARE``) keeps its gain. The median, not a least-squares ratio: pixels the fit
-   gets wrong would bias a mean (on simulated dome24 captures the median's gain errors
-   were 3 to 20 times smaller). Mostly diffuse pixels: a highlight's brightness depends
-   on roughness and normal as much as on the light. Both thresholds were chosen on
-   bench/selfcal.py's 12 materials (docs/rti.md);
+   (``MIN_SHARE``) keeps its gain, and if fewer than half the photos can be read
+   (``MIN_PHOTO_SHARE``) the round keeps every gain. The median, not a least-squares
+   ratio: pixels the fit gets wrong would bias a mean (on simulated dome24 captures the
+   median's gain errors were 3 to 20 times smaller). Mostly diffuse pixels: a
+   highlight's brightness depends on roughness and normal as much as on the light. The
+   thresholds and the hold were chosen on bench/selfcal.py's 12 materials, and the hold
+   and ``MIN_PHOTO_SHARE`` checked on 13 others (docs/rti.md);
 3. remove the part of the log gains linear in the lights' horizontal directions, and
    divide the gains by their geometric mean over the photos, per channel
    (:func:`without_tilt`): a brightness gradient across the dome photographs like a
@@ -62,6 +66,18 @@ LIT = 0.02
 #: it less than gains read from a few dark pixels.
 MIN_PIXELS = 16
 MIN_SHARE = 0.05
+#: A round updates the gains only if at least this share of the photos could be read
+#: (``MIN_SHARE``): where only one ring of a dome shows enough diffuse reflection (a black
+#: knit, lit from above), the gains read there trade against the reflectance's angular
+#: shape, and the normalisation of the gains would carry their error to every other photo.
+MIN_PHOTO_SHARE = 0.5
+#: The fits of the rounds hold roughness near their start this much more weakly than a
+#: reconstruction does (``SolverConfig.prior_roughness`` times this). The start (0.5 on
+#: flat maps) pulls the fitted lobe's width, and a lobe of the wrong width makes the
+#: diffuse pixels' ratios depend on the light's elevation: with the reconstruction's
+#: hold, a matte sample under true intensities read gains ordered by ring (+0.4% on the
+#: 22.5° ring, −0.6% on the 67.5° one; docs/rti.md).
+ROUGHNESS_HOLD = 0.01
 #: Alternations of fitting and gain estimation (on simulated dome24 captures the gains
 #: settle within three).
 ROUNDS = 3
@@ -106,11 +122,13 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     h, w = capture.size
     factor = max(1, math.ceil(max(h, w) / ROUND_SIDE))
     small = reduced(capture, factor)
-    fit_cfg = replace(cfg, refine="on", solver="lm", self_calibrate=False, validate=0)
+    lm = replace(cfg.lm, prior_roughness=cfg.lm.prior_roughness * ROUGHNESS_HOLD)
+    fit_cfg = replace(cfg, refine="on", solver="lm", self_calibrate=False, validate=0, lm=lm)
     gains = torch.ones(n, 3)
     history = []
     for _ in range(rounds):
         update = torch.ones(n, 3)
+        read = torch.zeros(n, dtype=torch.bool)
         cap = with_gains(small, gains)
         res = reconstruct_capture(cap, fit_cfg, None)
         if not history:
@@ -127,6 +145,9 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
                 ratio = photo[c][use[c]] / pred[c][use[c]]
                 if ratio.numel() >= enough:
                     update[i, c] = ratio.median()
+                    read[i] = True
+        if int(read.sum()) < MIN_PHOTO_SHARE * n:
+            update = torch.ones(n, 3)
         gains = without_tilt(gains * update.clamp(0.2, 5.0), small.lights)
     history.append(_fit_error(small, gains, fit_cfg))
     record = {
