@@ -21,7 +21,7 @@ maps, for each reconstruction; then the means.
 With ``--held-out`` the materials are 13 others, on which the estimator's constants were
 not chosen: ten procedural families the list above lacks (seed 2), the photo-built grass
 and the artist-style embossed coins and worn metal. ``--estimator=HOLD,SHARE`` sets
-:data:`matscan.reconstruct.estimator.ROUGHNESS_HOLD` and ``MIN_PHOTO_SHARE`` (``1,0`` is the
+:data:`matscan.reconstruct.selfcal.ROUGHNESS_HOLD` and ``MIN_PHOTO_SHARE`` (``1,0`` is the
 estimator before either existed).
 
 Run by hand: .venv/bin/python bench/selfcal.py [SIZE] [--held-out] [--estimator=HOLD,SHARE]   (default 128)
