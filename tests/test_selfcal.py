@@ -59,6 +59,8 @@ def test_recovers_led_gains_within_two_percent(tmp_path, family):
     assert float((res.light_gains / gains - 1).abs().max()) < 0.02
     record = res.self_calibration
     assert record["rerender_rmse"]["after"] < 0.5 * record["rerender_rmse"]["before"]
+    assert record["photos_read"] == 24 and record["updated"] is True
+    assert not any("diffuse reflection to read" in w for w in res.warnings)
     assert len(record["light_gains"]) == 24
 
 
@@ -97,8 +99,11 @@ def test_gains_stay_when_too_few_photos_can_be_read(monkeypatch):
     gains[16:24:2] = 1.1
     cap = _exact_capture(maps, gains, saturated=list(range(16)))
     cfg = ReconstructConfig(model="none", refine="on")
-    est, _ = estimate_gains(cap, cfg)
+    est, record = estimate_gains(cap, cfg)
     torch.testing.assert_close(est, torch.ones(24, 3), atol=1e-6, rtol=0)
+    assert record["photos_read"] == 8 and record["updated"] is False
+    res = reconstruct_capture(cap, ReconstructConfig(model="none", refine="on", self_calibrate=True))
+    assert sum("only 8 of 24 photos show enough diffuse reflection" in w for w in res.warnings) == 1
     monkeypatch.setattr(selfcal, "MIN_PHOTO_SHARE", 0.0)  # without the rule the 8 are read,
     est, _ = estimate_gains(cap, cfg)  # toward the brighter four (measured: 6.6% of their 10%)
     assert float(est[16:24:2].mean() / est[17:24:2].mean()) > 1.03

@@ -348,8 +348,14 @@ def reconstruct_capture(
         if scaled and all(k is None or str(k) in scaled for k in capture.light_indices):
             result.warnings.append(
                 "--self-calibrate: the calibration already scales every light; re-estimated from the photos, "
-                "right scales cost 0.24 dB on average and up to 1.8 dB on simulated domes (docs/rti.md): "
+                "right scales cost 0.03 dB on average and up to 0.4 dB on simulated domes (docs/rti.md): "
                 "self-calibrate only if the lights have changed since"
+            )
+        if not record["updated"]:
+            result.warnings.append(
+                f"--self-calibrate: only {record['photos_read']} of {len(capture.files)} photos show enough "
+                "diffuse reflection to read their light's intensity (a metal or a black fabric shows too little); "
+                "the rig file's intensities are kept"
             )
         return result
     n = len(capture.files)

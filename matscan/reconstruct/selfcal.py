@@ -109,7 +109,8 @@ def with_gains(capture: Capture, gains: Tensor) -> Capture:
 
 def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUNDS) -> tuple[Tensor, dict[str, Any]]:
     """Per-photo RGB gains (N, 3) of a capture (module doc) and a record: the gains by
-    photo, and the re-rendering RMSE of the sampled pixels before and after."""
+    photo, how many photos the last round could read, whether any round updated the
+    gains, and the re-rendering RMSE of the sampled pixels before and after."""
     from matscan.reconstruct.job import reconstruct_capture
     from matscan.reconstruct.solver import rerender_error
 
@@ -126,6 +127,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     fit_cfg = replace(cfg, refine="on", solver="lm", self_calibrate=False, validate=0, lm=lm)
     gains = torch.ones(n, 3)
     history = []
+    updated = False
     for _ in range(rounds):
         update = torch.ones(n, 3)
         read = torch.zeros(n, dtype=torch.bool)
@@ -148,11 +150,15 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
                     read[i] = True
         if int(read.sum()) < MIN_PHOTO_SHARE * n:
             update = torch.ones(n, 3)
+        else:
+            updated = True
         gains = without_tilt(gains * update.clamp(0.2, 5.0), small.lights)
     history.append(_fit_error(small, gains, fit_cfg))
     record = {
         "light_gains": {f: [round(float(v), 5) for v in g] for f, g in zip(capture.files, gains, strict=True)},
         "rounds": rounds,
+        "photos_read": int(read.sum()),  # in the last round
+        "updated": updated,
         "reduced_by": factor,
         "rerender_rmse": {"before": round(history[0], 6), "after": round(history[-1], 6)},
     }
