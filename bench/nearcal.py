@@ -1,5 +1,6 @@
-"""Near-light positions from the photos alone, by variable projection: where it works and
-where it does not (docs/rti.md, "Not done yet"). Not used by ``reconstruct``.
+"""Near-light positions from the photos alone: the joint fit ``--self-calibrate-positions``
+uses (``--joint``), the bound on any estimator (``--bound``), and earlier estimators that
+failed, kept for the record (docs/rti.md).
 
 A simulated dome24 whose LEDs are ±5 mm off their rig-file positions (uniform per axis,
 each LED's axis still aimed at the centre) and ±20% in brightness photographs a material
@@ -31,7 +32,23 @@ and L-BFGS moves the 72 coordinates by its gradient at the fitted maps (the maps
 warm, by 8 Levenberg–Marquardt steps at every evaluation), 6 rounds of 20 evaluations.
 It uses every pixel and photo, so no fit made with the wrong lights chooses them.
 
-Run by hand: .venv/bin/python bench/nearcal.py [--matte] [--prior=K] [--full] [--only=NAME] [SIZE]   (default 128)
+``--joint`` replaces steps 2 and 3 by ``matscan.reconstruct.lightpos.fit_positions``:
+positions, gains and every pixel's maps fitted together by Gauss–Newton with the pixels
+eliminated (what ``reconstruct --self-calibrate-positions`` runs), then the maps fitted
+with its positions and gains (their gradient across the dome and overall factor removed).
+Where the intensities could not be read (too little diffuse reflection: the record's
+``updated`` is false), reconstruct keeps the rig file's places, and so does the bench
+(marked *).
+
+``--bound`` prints instead the Cramér–Rao bound of the positions given the true maps and
+the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
+gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
+
+``--held-out`` runs bench/selfcal.py's 13 held-out materials instead of the four, and
+``--others`` the 8 of its 12 that are not among the four.
+
+Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
+[--held-out|--others] [--only=NAME] [SIZE]   (default 128)
 """
 
 from __future__ import annotations
@@ -45,12 +62,15 @@ import torch
 from matscan.capture import Capture
 from matscan.capture.folder import Correction
 from matscan.capture.virtual import CameraModel, simulate_images
+from matscan.color import linear_to_srgb
 from matscan.mapset import MapSet
+from matscan.materials.artist import artist_material
 from matscan.materials.photos import photo_material
 from matscan.materials.procedural import generate
-from matscan.reconstruct import ReconstructConfig, lm, reconstruct_capture
+from matscan.reconstruct import ReconstructConfig, lightpos, lm, reconstruct_capture
+from matscan.reconstruct.lightpos import fit_positions
 from matscan.reconstruct.lm import SolverConfig
-from matscan.reconstruct.selfcal import DIFFUSE_SHARE, LIT, estimate_gains, with_gains
+from matscan.reconstruct.selfcal import DIFFUSE_SHARE, LIT, estimate_gains, with_gains, without_tilt
 from matscan.render import render_maps, surface_points
 from matscan.rig import LightSet, builtin_rig
 
@@ -180,6 +200,57 @@ def full_positions(cap: Capture, rounds: int = 6, hold: float = 1e-4) -> torch.T
     return (p0 + dz).detach()
 
 
+def camera_variance(x: torch.Tensor, camera: CameraModel) -> torch.Tensor:
+    """The variance of a stored linear value around x: shot and read noise (apply_camera's
+    model) and the uniform error of rounding to an sRGB code, through the decoding's slope."""
+    top = (1 << camera.bits) - 1
+    v = linear_to_srgb(x.clamp(0, 1))
+    slope = torch.where(v > 0.04045, 2.4 / 1.055 * ((v + 0.055) / 1.055) ** 1.4, torch.full_like(v, 1 / 12.92))
+    return x.clamp_min(0) / camera.full_well + camera.read_noise**2 + (slope / top) ** 2 / 12
+
+
+def bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: CameraModel) -> tuple[float, float]:
+    """The Cramér–Rao bound of the LED positions given these photos: the RMS error (mm) of
+    an unbiased estimator that fits positions, gains and every pixel's maps, and with the
+    rig file's ±5 mm as a prior (uniform, σ 5/√3 per axis) as well."""
+    f64 = torch.float64
+    h, w = maps.size
+    pts = surface_points(rig.field_mm, (h, w), dtype=f64).reshape(-1, 3)
+    spec = maps.specular.double().reshape(maps.specular.shape[0], -1).expand(3, -1)
+    theta = lm._theta_of(maps.roughness.double(), maps.normal.double()).reshape(3, -1)
+    th = torch.cat([maps.diffuse.double().reshape(3, -1), spec, theta])
+    lights = replace(
+        true,
+        position=true.position.double(),
+        axis=true.axis.double(),
+        intensity=true.intensity.double(),
+        exponent=true.exponent.double(),
+        camera=true.camera.double(),
+        camera_w=true.camera_w.double(),
+        w=true.w.double(),
+    )
+    aims = torch.zeros(len(gains), 3, dtype=f64)  # dome24 aims every LED at the origin
+    m = lightpos._render(th, lightpos._placed(lights, aims, lights.position, gains.double()), pts)
+    wt = torch.where(m < 1, 1 / camera_variance(m, camera), torch.zeros_like(m))  # saturated: nothing
+    a, gp, b, c, gl = lightpos.normal_equations(th, lights, aims, gains.double(), pts, wt, m)
+    _, s, _ = lightpos.reduced_system(a, gp, b, c, gl, 0.0)
+    k = 3 * len(gains)
+    photos_alone = torch.linalg.pinv(s, hermitian=True, rtol=1e-12)[:k, :k]
+    s[:k, :k] += torch.eye(k, dtype=f64) / (5 / 3**0.5) ** 2
+    with_prior = torch.linalg.pinv(s, hermitian=True, rtol=1e-12)[:k, :k]
+    n = len(gains)
+    return float(photos_alone.trace() / n) ** 0.5, float(with_prior.trace() / n) ** 0.5
+
+
+def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
+    err = (pos - true.position).norm(dim=1)
+    psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
+    print(
+        f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}   " + " ".join(f"{v:7.2f}" for v in psnr),
+        flush=True,
+    )
+
+
 def main() -> None:
     torch.set_num_threads(2)
     prior = 0.0
@@ -192,11 +263,24 @@ def main() -> None:
     size = int(args[0]) if args else 128
     materials = [("paper", generate("paper", size, 1)), ("brick (photo)", photo_material("brick", size))]
     materials += [("leather", generate("leather", size, 1)), ("plastic", generate("plastic", size, 1))]
+    if "--held-out" in sys.argv:  # bench/selfcal.py's 13 (lightpos.OUTLIER and ROBUST came after two failed)
+        families = ("woven_twill", "woven_satin", "leather_embossed", "weave_heavy", "corrugated")
+        families += ("metallic_print", "worn", "varnished_wood", "dark_glossy", "glossy_coat")
+        materials = [(f, generate(f, size, 2)) for f in families]
+        materials += [("grass (photo)", photo_material("grass", size))]
+        materials += [(f"{n} (artist)", artist_material(n, size)) for n in ("embossed-coins", "worn-metal")]
+    if "--others" in sys.argv:  # the 8 of bench/selfcal.py's 12 not among the four
+        materials = [(f, generate(f, size, 1)) for f in ("woven_plain", "knit", "painted", "metal_brushed")]
+        materials += [("gravel (photo)", photo_material("gravel", size))]
+        materials += [(f"{n} (artist)", artist_material(n, size)) for n in ("foil-print", "black-leather", "lacquer")]
     cfg = ReconstructConfig(model="none", refine="on", solver="lm")
     rig = builtin_rig("dome24")
     nominal = rig.light_set()
     t0 = time.perf_counter()
-    print(f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal nominal  gains +positions (dB)")
+    if "--bound" in sys.argv:
+        print(f"{'material':16s} {'photos alone':>12s} {'+ rig file':>12s}   (RMS position error of the bound, mm)")
+    else:
+        print(f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal nominal  gains +positions (dB)")
     for i, (name, maps) in enumerate(materials):
         if only and not name.startswith(only[0]):
             continue
@@ -205,6 +289,10 @@ def main() -> None:
         gains = led_gains(100 + i)
         delta = (torch.rand(24, 3, generator=torch.Generator().manual_seed(200 + i)) * 2 - 1) * 5
         true = moved(nominal, delta)
+        if "--bound" in sys.argv:
+            alone, prior = bound(maps, true, gains, rig, CameraModel(read_noise=0.002))
+            print(f"{name:16s} {alone:12.2f} {prior:12.2f}", flush=True)
+            continue
         photos = simulate_images(
             maps, true.with_intensity(true.intensity * gains), rig.field_mm, CameraModel(read_noise=0.002), seed=i
         )
@@ -213,8 +301,17 @@ def main() -> None:
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
         ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
         plain = reconstruct_capture(cap, cfg)
-        g1, _ = estimate_gains(cap, cfg)
+        g1, record = estimate_gains(cap, cfg)
         gains_only = reconstruct_capture(with_gains(cap, g1), cfg)
+        if "--joint" in sys.argv and not record["updated"]:  # as reconstruct does: the rig file's places
+            report(f"{name} *", nominal.position, true, maps, rig, (ideal, plain, gains_only, gains_only))
+            continue
+        if "--joint" in sys.argv:
+            pos, g2, _ = fit_positions(cap, gains_only.maps, g1 * gains_only.intensity_scale)
+            cap2 = replace(cap, lights=moved(nominal, pos - nominal.position))
+            both = reconstruct_capture(with_gains(cap2, without_tilt(g2, nominal)), cfg)
+            report(name, pos, true, maps, rig, (ideal, plain, gains_only, both))
+            continue
         if "--full" in sys.argv:
             pos = full_positions(with_gains(cap, g1))
         else:
@@ -225,12 +322,7 @@ def main() -> None:
         cap2 = replace(cap, lights=moved(nominal, pos - nominal.position))
         g2, _ = estimate_gains(cap2, cfg)
         both = reconstruct_capture(with_gains(cap2, g2), cfg)
-        err = (pos - true.position).norm(dim=1)
-        psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in (ideal, plain, gains_only, both)]
-        print(
-            f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}   " + " ".join(f"{v:7.2f}" for v in psnr),
-            flush=True,
-        )
+        report(name, pos, true, maps, rig, (ideal, plain, gains_only, both))
     print(f"{len(materials)} materials at {size}² in {time.perf_counter() - t0:.0f} s")
 
 

@@ -153,7 +153,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         exr=args.exr,
         directx_normals=args.directx_normals,
         validate=args.validate,
-        self_calibrate=args.self_calibrate,
+        self_calibrate=args.self_calibrate or args.self_calibrate_positions,
+        self_calibrate_positions=args.self_calibrate_positions,
     )
     rec = reconstruct(
         _capture_arg(args.capture),
@@ -554,7 +555,8 @@ def cmd_batch(args: argparse.Namespace) -> str:
         refine=args.refine,
         solver=args.solver,
         validate=args.validate,
-        self_calibrate=args.self_calibrate,
+        self_calibrate=args.self_calibrate or args.self_calibrate_positions,
+        self_calibrate_positions=args.self_calibrate_positions,
         exr=args.exr,
         mirrors=args.mirrors,
     )
@@ -785,6 +787,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="estimate each light's RGB intensity with the maps, from the photos alone (8 photos or more); "
         "writes self_calibration.json, a calibration later captures can name",
+    )
+    p.add_argument(
+        "--self-calibrate-positions",
+        dest="self_calibrate_positions",
+        action="store_true",
+        help="--self-calibrate, and each near light's position too, fitted jointly with the intensities and "
+        "the maps (about 1 mm on simulated domes; helps samples with relief or texture, can cost a flat "
+        "uniform one: docs/rti.md)",
     )
     p.add_argument(
         "--validate",
@@ -1126,6 +1136,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--solver", default="lm", choices=["lm", "adam"], help="as for reconstruct")
     p.add_argument("--validate", type=non_negative_int, default=0, metavar="K", help="leave K photos out of each")
     p.add_argument("--self-calibrate", dest="self_calibrate", action="store_true", help="as for reconstruct")
+    p.add_argument(
+        "--self-calibrate-positions", dest="self_calibrate_positions", action="store_true", help="as for reconstruct"
+    )
     p.add_argument("--exr", action="store_true", help="also write every map as float EXR")
     p.add_argument("--mirrors", action="store_true", help="as for reconstruct")
     p.set_defaults(func=cmd_batch)

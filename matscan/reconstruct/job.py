@@ -41,6 +41,7 @@ from matscan.reconstruct.networks import capture_mirrors, predict_maps
 from matscan.reconstruct.solver import flat_start, refine_maps, rerender_error, solve_maps
 from matscan.reconstruct.surface import alpha_from_backlight, height_from_normals
 from matscan.render import render_maps
+from matscan.rig import LightSet
 
 if TYPE_CHECKING:
     from matscan.anyrig import AnyRigNet
@@ -74,6 +75,7 @@ class ReconstructConfig:
     emissive: bool = False  # also fit an emissive map (light the sample gives off under any LED)
     validate: int = 0  # leave this many photos out, reconstruct, and report their re-rendering error
     self_calibrate: bool = False  # estimate each light's RGB intensity with the maps (selfcal)
+    self_calibrate_positions: bool = False  # and the near lights' positions (lightpos); needs self_calibrate
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
 
@@ -95,6 +97,10 @@ class ReconstructConfig:
                 raise MatscanError(f"{name}: {value!r} must be a finite number of at least 0")
         if self.refine_lr == 0:
             raise MatscanError("refine_lr: must be above 0")
+        if self.self_calibrate_positions and not self.self_calibrate:
+            raise MatscanError(
+                "self_calibrate_positions: needs self_calibrate (the positions are fitted with the gains)"
+            )
 
 
 #: ``--refine auto`` refines captures with at least this many photos, per solver. With the
@@ -127,6 +133,7 @@ class Result:
     start: str = "flat"  # what the maps started from: "networks", "any-rig network" or "flat"
     mirrors: int = 0  # views the networks' maps are the mean of (1: the capture itself; 0: no networks)
     light_gains: Tensor | None = None  # (N, 3) per-photo gains found by self-calibration
+    lights: LightSet | None = None  # the photos' lights, where self-calibration moved them
     self_calibration: dict[str, Any] | None = None  # its record
 
 
@@ -338,11 +345,29 @@ def reconstruct_capture(
 
         t0 = time.perf_counter()
         gains, record = estimate_gains(capture, cfg)
+        lights, notes = None, []
+        if cfg.self_calibrate_positions and not record["updated"]:
+            notes.append(
+                "--self-calibrate-positions: the photos that show the lights' intensities are too few to place "
+                "them either (on simulated domes a metal and a black knit lost 2 dB); the rig file's positions "
+                "are kept"
+            )
+        elif cfg.self_calibrate_positions:
+            from matscan.reconstruct.lightpos import estimate_positions
+
+            lights, gains, record["positions"], notes = estimate_positions(capture, gains, cfg)
+            if lights is not None:
+                capture = replace(capture, lights=lights)
         seconds = time.perf_counter() - t0
         result = reconstruct_capture(
-            with_gains(capture, gains), replace(cfg, self_calibrate=False), nets, progress, anyrig
+            with_gains(capture, gains),
+            replace(cfg, self_calibrate=False, self_calibrate_positions=False),
+            nets,
+            progress,
+            anyrig,
         )
-        result.light_gains, result.self_calibration = gains, record
+        result.light_gains, result.lights, result.self_calibration = gains, lights, record
+        result.warnings.extend(notes)
         result.timings["self_calibration_s"] = seconds
         scaled = (capture.calibration or {}).get("light_scales", {})
         if scaled and all(k is None or str(k) in scaled for k in capture.light_indices):
@@ -573,6 +598,8 @@ def reconstruct(
             from matscan.reconstruct.selfcal import with_gains
 
             capture = with_gains(capture, res.light_gains)
+        if res.lights is not None:  # and the lights where it placed them
+            capture = replace(capture, lights=res.lights)
         from matscan.report.html import per_light_rows, write_report
 
         # the report's per-photo re-renderings give the overall error too: one rendering pass
@@ -614,7 +641,7 @@ def reconstruct(
             if res.light_gains is not None:
                 from matscan.reconstruct.selfcal import calibration_document
 
-                doc = calibration_document(calibrated, res.light_gains)
+                doc = calibration_document(calibrated, res.light_gains, res.lights)
                 (tmp / SELF_CALIBRATION).write_text(dumps(doc, SELF_CALIBRATION), encoding="utf-8")
                 record["exports"].append(SELF_CALIBRATION)
             write_report(

@@ -31,7 +31,8 @@ The result is a per-photo gain, applied as the calibration's per-light scale
 (photo = scale × model): :func:`with_gains` puts it into a capture's
 :class:`~matscan.capture.folder.Correction`, and the reconstruction writes it as a
 calibration file (``self_calibration.json``) that later captures on the same rig can
-name. Near-light positions are not estimated here.
+name. Near-light positions are estimated by :mod:`matscan.reconstruct.lightpos`
+(``--self-calibrate-positions``), after the gains.
 """
 
 from __future__ import annotations
@@ -124,7 +125,8 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     factor = max(1, math.ceil(max(h, w) / ROUND_SIDE))
     small = reduced(capture, factor)
     lm = replace(cfg.lm, prior_roughness=cfg.lm.prior_roughness * ROUGHNESS_HOLD)
-    fit_cfg = replace(cfg, refine="on", solver="lm", self_calibrate=False, validate=0, lm=lm)
+    off = {"self_calibrate": False, "self_calibrate_positions": False}
+    fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, lm=lm, **off)
     gains = torch.ones(n, 3)
     history = []
     updated = False
@@ -193,12 +195,22 @@ def _fit_error(capture: Capture, gains: Tensor, cfg: ReconstructConfig) -> float
     return rerender_error(res.maps, cap, list(range(len(cap.files))), res.intensity_scale)
 
 
-def calibration_document(capture: Capture, gains: Tensor) -> dict[str, Any]:
+def calibration_document(capture: Capture, gains: Tensor, lights: LightSet | None = None) -> dict[str, Any]:
     """The gains as a calibration file (matscan.calibrate's format, ``light_scales`` per
     rig light, RGB), so that a later capture on the same rig can name it. ``capture`` is
     the capture as calibrated before self-calibration: its own calibration (colour
     matrix, scales, flat fields, light positions) is carried over with the gains
-    multiplied into its scales (:func:`matscan.calibrate.with_light_gains`)."""
+    multiplied into its scales (:func:`matscan.calibrate.with_light_gains`). ``lights``,
+    where the positions were self-calibrated too, gives the near lights' positions
+    (``light_positions_mm``, replacing any the calibration had)."""
     from matscan.calibrate import with_light_gains
 
-    return with_light_gains(capture, gains)
+    doc = with_light_gains(capture, gains)
+    if lights is not None:
+        placed = dict(doc.get("light_positions_mm", {}))
+        for i, k in enumerate(capture.light_indices):
+            if k is not None and float(lights.w[i]) > 0.5:
+                placed[str(k)] = [round(float(v), 3) for v in lights.position[i]]
+        if placed:
+            doc["light_positions_mm"] = dict(sorted(placed.items(), key=lambda kv: int(kv[0])))
+    return doc

@@ -1,0 +1,365 @@
+"""Near lights' positions from the photos alone, fitted jointly with the intensities and the maps.
+
+``--self-calibrate-positions`` (after :mod:`matscan.reconstruct.selfcal` has estimated the
+intensities): every near light's position (3 numbers), every photo's RGB gain and, at a
+sample of the pixels, every pixel's maps (ρ and F0 per channel, roughness and the normal's
+two slopes: 9 numbers) are fitted together to the photos, by Gauss–Newton with
+Levenberg–Marquardt damping, as bundle adjustment fits cameras and points (Triggs et al.
+2000, "Bundle adjustment — a modern synthesis"). Each pixel's 9 × 9 block is eliminated
+(the Schur complement), so a step solves one system over the lights only (6 numbers a
+light). The misfit is weighted by the photos' noise, var = a·m + b (shot and read
+noise), with a and b read from the start's residuals (the median of the squared residual
+in bins of brightness): relative residuals, which the solver uses, weigh the dark pixels
+too much, and the positions came out 2 to 6 mm off (docs/rti.md). Where the model cannot
+follow the photos the lights must not move to explain them: pixels the start misfits
+more than ``OUTLIER`` times the median pixel are left out, and the rest are weighed by
+Cauchy's loss (``ROBUST``). Without the two, a heavy weave and a corrugated sheet (flanks
+of 30°-50°) drew the LEDs 30 mm away.
+
+What the photos cannot tell is fixed by convention, as for the intensities: the gains'
+overall RGB factor (the albedo takes it) and their gradient across the dome (a tilted
+sample looks the same; the steps keep the gradient the intensities came with, none). A
+pixel's step is kept only where it lowers that pixel's misfit, so a few pixels whose
+linearisation is poor (a highlight's edge) cannot reject the lights' step for all.
+
+Measured on simulated dome24 captures whose LEDs are ±5 mm off (``bench/nearcal.py``,
+docs/rti.md): the Cramér–Rao bound of such photos puts the positions within about
+0.5-1 mm, and this fit comes within about that, where four estimators that fitted the
+lights apart from the maps, or with the solver's holds on the maps, drifted 2-50 mm.
+Each LED stays aimed where the rig file aims it (as ``calibrate --positions``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+from matscan.capture.folder import Capture
+from matscan.mapset import MapSet
+from matscan.reconstruct import lm
+from matscan.render import surface_points
+from matscan.rig import LightSet
+
+if TYPE_CHECKING:
+    from matscan.reconstruct.job import ReconstructConfig
+
+F64 = torch.float64
+#: Gauss–Newton steps (on simulated dome24 captures the positions settle within 10).
+ITERATIONS = 10
+#: The capture is reduced to at most this many pixels on its longer side (every
+#: ``factor``-th pixel, as the intensity rounds pick them).
+POSITION_SIDE = 128
+#: Residuals beyond about this many noise deviations weigh less and less (Cauchy's loss,
+#: c² log(1 + r²/c²)): where the model cannot follow the photos (steep flanks a low
+#: light grazes), the lights must not move to explain them.
+ROBUST = 3.0
+#: Pixels whose start misfits the photos more than this many times the median pixel's
+#: are left out: there the start's maps are wrong (a steep flank), not the lights.
+OUTLIER = 4.0
+#: A light moved farther than this from the rig file's place is reported (as
+#: ``calibrate --positions`` does): a wrong rig file, or a fit that went astray.
+MOVED_WARN_MM = 20.0
+#: Bounds of the per-pixel numbers during the fit. ρ and F0 may leave [0, 1] a little: held
+#: in, pixels at a bound stalled the steps of the lights (their numbers are not kept).
+_LOW = torch.tensor([-1.0, -1, -1, -1, -1, -1, 0.032, -3, -3], dtype=F64)[:, None]
+_HIGH = torch.tensor([2.0, 2, 2, 2, 2, 2, 1, 3, 3], dtype=F64)[:, None]
+_CHUNK = 4096  # pixels whose 9 × 9 blocks are eliminated at once
+
+
+def _placed(lights: LightSet, aims: Tensor, pos: Tensor, gains: Tensor) -> LightSet:
+    """The lights at ``pos`` (N, 3), aimed at ``aims`` (N, 3), their intensities × gains."""
+    axis = aims - pos
+    axis = axis / axis.norm(dim=1, keepdim=True)
+    return replace(lights, position=pos, axis=axis, intensity=lights.intensity.to(F64) * gains)
+
+
+def _double(lights: LightSet) -> LightSet:
+    return replace(
+        lights,
+        position=lights.position.to(F64),
+        axis=lights.axis.to(F64),
+        intensity=lights.intensity.to(F64),
+        exponent=lights.exponent.to(F64),
+        camera=lights.camera.to(F64),
+        camera_w=lights.camera_w.to(F64),
+        w=lights.w.to(F64),
+    )
+
+
+def _render(th: Tensor, lights: LightSet, pts: Tensor) -> Tensor:
+    """The model (N, 3, P) of pixels with numbers ``th`` (9, P) under ``lights``."""
+    a, s1, s0 = lm.bases(th[6:9], lm.geometry(lights, pts))
+    return th[None, 0:3] * a + th[None, 3:6] * s1 + s0
+
+
+def _jacobians(th: Tensor, lights: LightSet, aims: Tensor, gains: Tensor, pts: Tensor):
+    """The model m (N, 3, P) and its derivatives by each pixel's 9 numbers (N, 3, P, 9)
+    and by each light's position (N, 3, P, 3); by the log gains it is m itself."""
+    base = _placed(lights, aims, lights.position, gains)
+    a, s1, s0 = lm.bases(th[6:9], lm.geometry(base, pts))
+    m = th[None, 0:3] * a + th[None, 3:6] * s1 + s0
+    n, p = m.shape[0], m.shape[2]
+    jp = torch.zeros(n, 3, p, 9, dtype=F64)
+    for c in range(3):
+        jp[:, c, :, c] = a[:, c]
+        jp[:, c, :, 3 + c] = s1[:, c]
+    for j in range(3):  # roughness and slopes: central differences
+        hi, lo = th.clone(), th.clone()
+        hi[6 + j] += 1e-6
+        lo[6 + j] -= 1e-6
+        jp[..., 6 + j] = (_render(hi, base, pts) - _render(lo, base, pts)) / 2e-6
+    jl = torch.zeros(n, 3, p, 3, dtype=F64)
+    for j in range(3):
+        d = torch.zeros(n, 3, dtype=F64)
+        d[:, j] = 1e-5
+        hi = _render(th, _placed(lights, aims, lights.position + d, gains), pts)
+        lo = _render(th, _placed(lights, aims, lights.position - d, gains), pts)
+        jl[..., j] = (hi - lo) / 2e-5
+    return m, jp, jl
+
+
+def normal_equations(th: Tensor, lights: LightSet, aims: Tensor, gains: Tensor, pts: Tensor, wt: Tensor, y: Tensor):
+    """The Gauss–Newton normal equations of the weighted misfit Σ wt (y − m)² over each
+    pixel's 9 numbers and the lights' (positions, then log gains; 6N): per pixel the
+    block A (P, 9, 9) and gradient g_p (P, 9), the coupling B (P, 9, 6N), the lights'
+    block C (6N, 6N) and gradient g_l (6N) (gradients of −½ the misfit). With y = m they
+    are the Fisher information of photos of noise variance 1 / wt."""
+    m, jp, jl = _jacobians(th, lights, aims, gains, pts)
+    n, p_count = m.shape[0], m.shape[2]
+    r = y - m
+    a = torch.einsum("kcp,kcpi,kcpj->pij", wt, jp, jp)
+    gp = torch.einsum("kcp,kcpi,kcp->pi", wt, jp, r)
+    b = torch.cat(
+        [
+            torch.einsum("kcp,kcpi,kcpj->pikj", wt, jp, jl).reshape(p_count, 9, 3 * n),
+            torch.einsum("kcp,kcpi,kcp->pikc", wt, jp, m).reshape(p_count, 9, 3 * n),
+        ],
+        2,
+    )
+    c = torch.zeros(6 * n, 6 * n, dtype=F64)
+    cpp = torch.einsum("kcp,kcpi,kcpj->kij", wt, jl, jl)
+    cpg = torch.einsum("kcp,kcpi,kcp->kic", wt, jl, m)
+    for k in range(n):
+        c[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = cpp[k]
+        c[3 * k : 3 * k + 3, 3 * n + 3 * k : 3 * n + 3 * k + 3] = cpg[k]
+        c[3 * n + 3 * k : 3 * n + 3 * k + 3, 3 * k : 3 * k + 3] = cpg[k].T
+    cgg = torch.einsum("kcp,kcp,kcp->kc", wt, m, m).reshape(-1)
+    c[3 * n :, 3 * n :] += torch.diag(cgg + 1e-9 * float(cgg.mean()))  # the overall factor: the albedo's
+    gl = torch.cat(
+        [
+            torch.einsum("kcp,kcpj,kcp->kj", wt, jl, r).reshape(-1),
+            torch.einsum("kcp,kcp,kcp->kc", wt, m, r).reshape(-1),
+        ]
+    )
+    return a, gp, b, c, gl
+
+
+def reduced_system(a: Tensor, gp: Tensor, b: Tensor, c: Tensor, gl: Tensor, mu: float):
+    """The pixels' blocks damped by ``mu`` (Levenberg–Marquardt, on the diagonal), and the
+    lights' system with every pixel eliminated (the Schur complement C − Σ Bᵀ A⁻¹ B, and
+    its right side g_l − Σ Bᵀ A⁻¹ g_p): (damped A, S, rhs)."""
+    eye9 = torch.eye(9, dtype=F64)
+    diag_a = a.diagonal(dim1=1, dim2=2)
+    ad = a + (mu * diag_a + 1e-12 * diag_a.mean(1, keepdim=True))[:, :, None] * eye9
+    s = c + mu * torch.diag(c.diagonal())
+    rhs = gl.clone()
+    for i in range(0, len(a), _CHUNK):
+        bi = b[i : i + _CHUNK]
+        x = torch.linalg.solve(ad[i : i + _CHUNK], torch.cat([bi, gp[i : i + _CHUNK, :, None]], 2))
+        s -= torch.einsum("pik,pil->kl", bi, x[..., :-1])
+        rhs -= torch.einsum("pik,pi->k", bi, x[..., -1])
+    return ad, s, rhs
+
+
+def _noise_weights(y: Tensor, m: Tensor, valid: Tensor) -> tuple[Tensor, tuple[float, float]]:
+    """1 / var per value, var = a·m + b fitted to the squared residuals' medians in 20
+    bins of m (the median of a χ²₁ is 0.455 of its mean), relative errors minimised."""
+    keep = valid > 0
+    mm, rr = m[keep], (y - m)[keep].square()
+    step = max(1, mm.numel() // 200_000)
+    edges = torch.quantile(mm[::step].float(), torch.linspace(0, 1, 21)).to(F64)
+    xs, vs = [], []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        sel = (mm >= lo) & (mm < hi)
+        if int(sel.sum()) > 100:
+            xs.append(float(mm[sel].mean()))
+            vs.append(float(rr[sel].median()) / 0.4549)
+    if len(xs) < 2:
+        a, b = 0.0, float(rr.mean().clamp_min(1e-12))
+    else:
+        x, v = torch.tensor(xs, dtype=F64), torch.tensor(vs, dtype=F64).clamp_min(1e-12)
+        design = torch.stack([x, torch.ones_like(x)], 1) / v[:, None]
+        coef = torch.linalg.lstsq(design, torch.ones_like(v)[:, None]).solution[:, 0]
+        a, b = float(coef[0].clamp_min(0)), float(coef[1].clamp_min(1e-10))
+    return valid / (a * y.clamp_min(0) + b), (a, b)
+
+
+def _free_directions(lights: LightSet, near: Tensor) -> Tensor:
+    """An orthonormal basis (6N, D) of the steps allowed over (positions, log gains): no
+    position step for directional lights, no gradient of the log gains across the dome."""
+    n = len(near)
+    d = lights.position / lights.position.norm(dim=1, keepdim=True)
+    fixed = []
+    for i in range(n):
+        if not bool(near[i]):
+            for j in range(3):
+                e = torch.zeros(6 * n, dtype=F64)
+                e[3 * i + j] = 1
+                fixed.append(e)
+    for j in range(2):
+        for c in range(3):
+            g = torch.zeros(n, 3, dtype=F64)
+            g[:, c] = d[:, j]
+            fixed.append(torch.cat([torch.zeros(3 * n, dtype=F64), g.reshape(-1)]))
+    q = torch.linalg.qr(torch.stack(fixed, 1))[0]
+    u, s, _ = torch.linalg.svd(torch.eye(6 * n, dtype=F64) - q @ q.T)
+    return u[:, : 6 * n - q.shape[1]]
+
+
+def fit_positions(
+    capture: Capture,
+    maps: MapSet,
+    gains: Tensor,
+    iterations: int = ITERATIONS,
+    progress=None,
+) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
+    the maps (module doc).
+
+    ``capture`` is the capture as calibrated before self-calibration, already reduced to
+    the pixels to use; ``maps`` are maps fitted to its photos divided by ``gains`` (the
+    start), which are gains times any intensity scale of that fit. Directional lights keep
+    their directions. Returns the positions, the gains (the start's overall factor and
+    gradient across the dome kept) and a record."""
+    n = len(capture.files)
+    lights = _double(capture.lights)
+    near = lights.w > 0.5
+    aims = torch.stack(
+        [
+            torch.tensor(capture.rig.lights[k].aim_mm, dtype=F64) if k is not None else torch.zeros(3, dtype=F64)
+            for k in capture.light_indices
+        ]
+    )
+    aims = torch.where(near[:, None], aims, lights.position - lights.axis)  # directional: unused
+    h, w = capture.size
+    pts = surface_points(capture.field_mm, (h, w), dtype=F64).reshape(-1, 3)
+    y = capture.linear(list(range(n))).to(F64).reshape(n, 3, -1)
+    valid = (~capture.saturation(list(range(n)))).to(F64).reshape(n, 1, -1).expand(n, 3, -1)
+    spec = maps.specular.to(F64).reshape(maps.specular.shape[0], -1).expand(3, -1)
+    th = torch.cat(
+        [
+            maps.diffuse.to(F64).reshape(3, -1),
+            spec.clone(),
+            lm._theta_of(maps.roughness.to(F64), maps.normal.to(F64)).reshape(3, -1),
+        ]
+    )
+    start = lights.position.clone()
+    pos, lg = start.clone(), gains.to(F64).log()
+    m0 = _render(th, _placed(lights, aims, pos, lg.exp()), pts)
+    wt, noise = _noise_weights(y, m0, valid)
+    per_pixel = (wt * (y - m0) ** 2).sum((0, 1)) / valid.sum((0, 1)).clamp_min(1)
+    used = per_pixel <= OUTLIER * per_pixel.median()
+    th, y, valid, wt, pts = th[:, used], y[..., used], valid[..., used], wt[..., used], pts[used]
+    basis = _free_directions(lights, near)
+
+    def residual2(th: Tensor, pos: Tensor, lg: Tensor) -> Tensor:
+        """Squared residuals in units of the noise (N, 3, P)."""
+        return wt * (y - _render(th, _placed(lights, aims, pos, lg.exp()), pts)) ** 2
+
+    def pixel_misfit(th: Tensor, pos: Tensor, lg: Tensor) -> Tensor:
+        return (ROBUST**2 * torch.log1p(residual2(th, pos, lg) / ROBUST**2)).sum((0, 1))
+
+    cost = float(pixel_misfit(th, pos, lg).sum())
+    first, mu = cost, 1e-3
+    for it in range(iterations):
+        placed = replace(lights, position=pos)
+        irls = wt / (1 + residual2(th, pos, lg) / ROBUST**2)  # Cauchy's weights, reweighted each step
+        a, gp, b, c, gl = normal_equations(th, placed, aims, lg.exp(), pts, irls, y)
+        for _ in range(8):
+            ad, s, rhs = reduced_system(a, gp, b, c, gl, mu)
+            dl = basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs)
+            dp = torch.linalg.solve(ad, (gp - torch.einsum("pik,k->pi", b, dl))[..., None])[..., 0]
+            pos_t = pos + dl[: 3 * n].reshape(n, 3)
+            lg_t = lg + dl[3 * n :].reshape(n, 3)
+            th_t = torch.max(torch.min(th + dp.T, _HIGH), _LOW)
+            better = pixel_misfit(th_t, pos_t, lg_t) <= pixel_misfit(th, pos_t, lg_t)
+            th_t = torch.where(better[None], th_t, th)
+            cost_t = float(pixel_misfit(th_t, pos_t, lg_t).sum())
+            if cost_t < cost:
+                th, pos, lg, cost = th_t, pos_t, lg_t, cost_t
+                mu = max(mu / 3, 1e-7)
+                break
+            mu *= 4
+        if progress is not None:
+            progress(it + 1)
+    shift = (pos - start).norm(dim=1)[near]
+    record = {
+        "near_lights": int(near.sum()),
+        "pixels_used": round(float(used.double().mean()), 4),
+        "iterations": iterations,
+        "noise_model": {"a": _sig4(noise[0]), "b": _sig4(noise[1])},  # var = a·m + b
+        "misfit_per_value": {  # robust, in units of the noise model read from the start's residuals
+            "start": round(first / float(valid.sum()), 4),
+            "end": round(cost / float(valid.sum()), 4),
+        },
+        "moved_mm": {
+            "mean": round(float(shift.mean()), 3) if len(shift) else 0.0,
+            "max": round(float(shift.max()), 3) if len(shift) else 0.0,
+        },
+    }
+    return pos.float(), lg.exp().float(), record
+
+
+def _sig4(v: float) -> float:
+    return float(f"{v:.4g}")
+
+
+def estimate_positions(
+    capture: Capture, gains: Tensor, cfg: ReconstructConfig
+) -> tuple[LightSet | None, Tensor, dict[str, Any], list[str]]:
+    """The photos' lights with the near lights where the photos place them, new gains
+    (N, 3), a record and warnings, for a capture whose intensities were self-calibrated
+    (``gains``, from :func:`matscan.reconstruct.selfcal.estimate_gains`). The maps that
+    start the joint fit are the ``lm`` solver's from flat maps, on every ``factor``-th
+    pixel (``POSITION_SIDE``). Without near lights the lights are returned as None and
+    the gains unchanged."""
+    from matscan.reconstruct.job import reconstruct_capture
+    from matscan.reconstruct.selfcal import reduced, with_gains, without_tilt
+
+    near = capture.lights.w > 0.5
+    if not bool(near.any()):
+        note = (
+            "--self-calibrate-positions: the capture's lights are all directional, with no position to fit; "
+            "only their intensities were self-calibrated"
+        )
+        return None, gains, {"near_lights": 0}, [note]
+    h, w = capture.size
+    factor = max(1, math.ceil(max(h, w) / POSITION_SIDE))
+    small = reduced(capture, factor)
+    fit_cfg = replace(cfg, refine="on", solver="lm", self_calibrate=False, self_calibrate_positions=False, validate=0)
+    start = reconstruct_capture(with_gains(small, gains), fit_cfg, None)
+    pos, fitted, record = fit_positions(small, start.maps, gains * start.intensity_scale)
+    lights = capture.lights
+    position, axis = lights.position.clone(), lights.axis.clone()
+    placed = {}
+    for i, k in enumerate(capture.light_indices):
+        if not bool(near[i]):
+            continue
+        aim = torch.tensor(capture.rig.lights[k].aim_mm) if k is not None else position[i] + axis[i]
+        position[i] = pos[i]
+        axis[i] = (aim - pos[i]) / (aim - pos[i]).norm()
+        placed[capture.files[i]] = [round(float(v), 3) for v in pos[i]]
+    record["reduced_by"] = factor
+    record["light_positions_mm"] = placed
+    notes = []
+    if record["moved_mm"]["max"] > MOVED_WARN_MM:
+        notes.append(
+            f"--self-calibrate-positions: a light moved {record['moved_mm']['max']:.0f} mm from the rig file's "
+            f"place (more than {MOVED_WARN_MM:.0f} mm): check the rig file, or measure the positions with "
+            "`matscan calibrate --grey --positions` or `matscan rig from-spheres`"
+        )
+    return replace(lights, position=position, axis=axis), without_tilt(fitted, lights), record, notes
