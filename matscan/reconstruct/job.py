@@ -349,7 +349,7 @@ def reconstruct_capture(
         if cfg.self_calibrate_positions and not record["updated"]:
             notes.append(
                 "--self-calibrate-positions: the photos that show the lights' intensities are too few to place "
-                "them either (on simulated domes a metal and a black knit lost 2 dB); the rig file's positions "
+                "them either (fitted, a simulated metal and black knit lost 1.7-2.0 dB); the rig file's positions "
                 "are kept"
             )
         elif cfg.self_calibrate_positions:
