@@ -44,6 +44,7 @@ Where the intensities could not be read (too little diffuse reflection: the reco
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
 
+``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``.
 ``--held-out`` runs bench/selfcal.py's 13 held-out materials instead of the four, and
 ``--others`` the 8 of its 12 that are not among the four.
 
@@ -257,6 +258,10 @@ def main() -> None:
     for a in sys.argv[1:]:
         if a.startswith("--prior="):
             prior = float(a.split("=", 1)[1])
+        if a.startswith("--outlier="):  # the joint fit's pixel rule (lightpos.OUTLIER)
+            lightpos.OUTLIER = float(a.split("=", 1)[1])
+        if a.startswith("--robust="):  # the joint fit's loss scale (lightpos.ROBUST)
+            lightpos.ROBUST = float(a.split("=", 1)[1])
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
     only = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--only=")]
