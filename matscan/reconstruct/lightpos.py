@@ -325,8 +325,9 @@ def estimate_positions(
     (N, 3), a record and warnings, for a capture whose intensities were self-calibrated
     (``gains``, from :func:`matscan.reconstruct.selfcal.estimate_gains`). The maps that
     start the joint fit are the ``lm`` solver's from flat maps, on every ``factor``-th
-    pixel (``POSITION_SIDE``). Without near lights the lights are returned as None and
-    the gains unchanged."""
+    pixel (``POSITION_SIDE``). Without near lights, or where the capture gives each
+    photo's geometry (a flash rig: measured on domes only), the lights are returned as
+    None and the gains unchanged."""
     from matscan.reconstruct.job import reconstruct_capture
     from matscan.reconstruct.selfcal import reduced, with_gains, without_tilt
 
@@ -337,6 +338,12 @@ def estimate_positions(
             "only their intensities were self-calibrated"
         )
         return None, gains, {"near_lights": 0}, [note]
+    if capture.rig.per_image_geometry:
+        note = (
+            "--self-calibrate-positions: the capture gives each photo's light and camera (a flash rig); "
+            "their positions are kept, only the intensities were self-calibrated (measured on domes only)"
+        )
+        return None, gains, {"near_lights": int(near.sum()), "kept": "per-photo geometry"}, [note]
     h, w = capture.size
     factor = max(1, math.ceil(max(h, w) / POSITION_SIDE))
     small = reduced(capture, factor)
