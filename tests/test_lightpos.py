@@ -145,25 +145,13 @@ def test_positions_are_kept_where_the_intensities_could_not_be_read():
     assert sum("rig file's positions are kept" in w for w in res.warnings) == 1
 
 
-def test_a_flash_capture_keeps_the_geometry_it_gives():
+def test_a_flash_capture_keeps_the_geometry_it_gives(tmp_path):
     """A flash rig gives each photo's light and camera: positions are not fitted there."""
-    from matscan.capture.virtual import default_flash_geometry
-    from matscan.rig import Light, LightSet
+    from matscan.capture.virtual import CameraModel, simulate
 
-    rig = builtin_rig("flash")
-    template = rig.lights[0]
-    geometry = default_flash_geometry()
-    lights = LightSet.from_lights(
-        [Light(tuple(g[0]), template.intensity, template.exponent, template.aim_mm) for g in geometry],
-        [tuple(g[1]) for g in geometry],
-        rig.reference_distance_mm,
-    )
-    n = len(geometry)
-    photos = render_maps(generate("paper", 24, 1), lights, rig.field_mm)
-    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
-    files = tuple(f"{i:02d}.png" for i in range(n))
-    cap = Capture(rig, rig.field_mm, "linear", photos, sat, (None,) * n, lights, files)
-    gains = torch.ones(n, 3)
+    simulate(generate("paper", 24, 1), builtin_rig("flash"), tmp_path / "flash", camera=CameraModel())
+    cap = load_capture(tmp_path / "flash")
+    gains = torch.ones(len(cap.files), 3)
     placed, out, record, notes = estimate_positions(cap, gains, ReconstructConfig(model="none", self_calibrate=True))
     assert placed is None and out is gains and record["kept"] == "per-photo geometry"
-    assert len(notes) == 1 and "flash rig" in notes[0]
+    assert record["near_lights"] == len(cap.files) and len(notes) == 1 and "flash rig" in notes[0]
