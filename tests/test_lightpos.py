@@ -155,3 +155,24 @@ def test_a_flash_capture_keeps_the_geometry_it_gives(tmp_path):
     placed, out, record, notes = estimate_positions(cap, gains, ReconstructConfig(model="none", self_calibrate=True))
     assert placed is None and out is gains and record["kept"] == "per-photo geometry"
     assert record["near_lights"] == len(cap.files) and len(notes) == 1 and "flash rig" in notes[0]
+
+
+def test_the_cli_flag_implies_the_intensities(tmp_path):
+    from matscan.cli import main
+
+    photos = _photos(generate("paper", 24, 1), _offsets(), _gains(), noise=0.002)
+    write_capture(tmp_path / "cap", photos, RIG, light_indices=list(range(24)), encoding="srgb", bits=16)
+    main(
+        [
+            "reconstruct",
+            str(tmp_path / "cap"),
+            "--out",
+            str(tmp_path / "out"),
+            "--model",
+            "none",
+            "--self-calibrate-positions",
+        ]
+    )
+    record = json.loads((tmp_path / "out" / "matscan.json").read_text())
+    assert record["config"]["self_calibrate"] is True and record["config"]["self_calibrate_positions"] is True
+    assert record["self_calibration"]["positions"]["near_lights"] == 24
