@@ -32,10 +32,12 @@ and L-BFGS moves the 72 coordinates by its gradient at the fitted maps (the maps
 warm, by 8 Levenberg–Marquardt steps at every evaluation), 6 rounds of 20 evaluations.
 It uses every pixel and photo, so no fit made with the wrong lights chooses them.
 
-``--joint`` replaces steps 2 and 3 by ``matscan.reconstruct.lightpos.fit_positions``:
-positions, gains and every pixel's maps fitted together by Gauss–Newton with the pixels
-eliminated (what ``reconstruct --self-calibrate-positions`` runs), then the maps fitted
+``--joint`` replaces steps 2 and 3 by ``matscan.reconstruct.lightpos.estimate_positions``
+(what ``reconstruct --self-calibrate-positions`` runs): positions, gains and every pixel's
+maps fitted together by Gauss–Newton with the pixels eliminated, then the maps fitted
 with its positions and gains (their gradient across the dome and overall factor removed).
+``--replicas=K`` removes the fit's bias estimated from K replicas (``lightpos.BIAS_REPLICAS``,
+0 by default); ``--side=N`` fits on N pixels along the longer side (``POSITION_SIDE``).
 Where the intensities could not be read (too little diffuse reflection: the record's
 ``updated`` is false), reconstruct keeps the rig file's places, and so does the bench
 (marked *).
@@ -49,7 +51,7 @@ gains and maps from these photos, alone and with the rig file's ±5 mm as a prio
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--held-out|--others] [--only=NAME] [SIZE]   (default 128)
+[--replicas=K] [--side=N] [--held-out|--others] [--only=NAME] [SIZE]   (default 128)
 """
 
 from __future__ import annotations
@@ -69,9 +71,9 @@ from matscan.materials.artist import artist_material
 from matscan.materials.photos import photo_material
 from matscan.materials.procedural import generate
 from matscan.reconstruct import ReconstructConfig, lightpos, lm, reconstruct_capture
-from matscan.reconstruct.lightpos import fit_positions
+from matscan.reconstruct.lightpos import estimate_positions
 from matscan.reconstruct.lm import SolverConfig
-from matscan.reconstruct.selfcal import DIFFUSE_SHARE, LIT, estimate_gains, with_gains, without_tilt
+from matscan.reconstruct.selfcal import DIFFUSE_SHARE, LIT, estimate_gains, with_gains
 from matscan.render import render_maps, surface_points
 from matscan.rig import LightSet, builtin_rig
 
@@ -262,6 +264,10 @@ def main() -> None:
             lightpos.OUTLIER = float(a.split("=", 1)[1])
         if a.startswith("--robust="):  # the joint fit's loss scale (lightpos.ROBUST)
             lightpos.ROBUST = float(a.split("=", 1)[1])
+        if a.startswith("--side="):  # pixels on the longer side of the joint fit (lightpos.POSITION_SIDE)
+            lightpos.POSITION_SIDE = int(a.split("=", 1)[1])
+        if a.startswith("--replicas="):  # the joint fit's bias replicas (lightpos.BIAS_REPLICAS; 0: none)
+            lightpos.BIAS_REPLICAS = int(a.split("=", 1)[1])
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
     only = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--only=")]
@@ -311,11 +317,10 @@ def main() -> None:
         if "--joint" in sys.argv and not record["updated"]:  # as reconstruct does: the rig file's places
             report(f"{name} *", nominal.position, true, maps, rig, (ideal, plain, gains_only, gains_only))
             continue
-        if "--joint" in sys.argv:
-            pos, g2, _ = fit_positions(cap, gains_only.maps, g1 * gains_only.intensity_scale)
-            cap2 = replace(cap, lights=moved(nominal, pos - nominal.position))
-            both = reconstruct_capture(with_gains(cap2, without_tilt(g2, nominal)), cfg)
-            report(name, pos, true, maps, rig, (ideal, plain, gains_only, both))
+        if "--joint" in sys.argv:  # what reconstruct --self-calibrate-positions runs
+            lights, g2, _, _ = estimate_positions(cap, g1, cfg)
+            both = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
+            report(name, lights.position, true, maps, rig, (ideal, plain, gains_only, both))
             continue
         if "--full" in sys.argv:
             pos = full_positions(with_gains(cap, g1))
