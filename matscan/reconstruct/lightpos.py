@@ -22,17 +22,17 @@ sample looks the same; the steps keep the gradient the intensities came with, no
 pixel's step is kept only where it lowers that pixel's misfit, so a few pixels whose
 linearisation is poor (a highlight's edge) cannot reject the lights' step for all.
 
-The fit is biased. Each pixel brings 9 unknowns of its own, fitted from its few values
-(3 a photo), and where the model bends (a highlight's shape, the normal) the noise
-shifts them in one direction; the lights, shared by all pixels,
-take up the shift (the Neyman–Scott problem: more pixels do not remove it). Started at
-the true positions of simulated paper and grass, the fit drifted 0.6 and 1.2 mm with the
+The fit is biased. Each pixel brings 9 unknowns of its own, fitted from its own few
+values (3 a photo: 72 on dome24), and where the model bends (a highlight's shape, the
+normal) the noise shifts them in one direction; the lights, shared by all pixels, take
+up the shift (the Neyman–Scott problem: more pixels do not remove it). Started at the
+true positions of simulated paper and grass, the fit drifted 0.6 and 1.2 mm with the
 camera's noise, 0.2 mm with a fifth of its variance (noise 0.002); from the rig file,
-grass came to 0.86 mm at 128² and 0.90 at 256² with every pixel used. So the
-bias can be estimated by simulation (:func:`debiased`, a parametric bootstrap: Efron &
-Tibshirani 1993, "An introduction to the bootstrap", ch. 10): the maps are fitted again
-at the fitted lights and gains, the sampled pixels rendered from them with fresh noise,
-fitted from those lights, and how far that fit moves them subtracted. It is off
+grass came to 0.86 mm at 128² and 0.90 at 256² with every pixel used. So the bias can be
+estimated by simulation (:func:`debiased`, a parametric bootstrap: Efron & Tibshirani
+1993, "An introduction to the bootstrap", ch. 10): the maps are fitted again at the
+fitted lights and gains, the sampled pixels rendered from them with fresh noise, fitted
+from those lights, and how far that fit moves them subtracted. It is off
 (``BIAS_REPLICAS`` = 0): on 22 simulated materials it gained 0.13 dB on average (a
 photographed grass and gravel 1.2 and 1.3 dB) but cost a black leather 0.11 dB, which
 fails the rule set before the measurement (docs/rti.md).
