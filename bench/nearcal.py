@@ -23,7 +23,7 @@ the four come back within 2 mm (the leather's relief leaves too few usable pixel
 the materials' own specular they do not (docs/rti.md gives the numbers).
 
 ``--prior=K`` adds K × Σ (offset / 5 mm)² to the (scaled) misfit, a pull toward the rig
-file's places; ``--only=NAME`` runs one material.
+file's places; ``--only=NAME[,NAME...]`` runs the materials whose names start so.
 
 ``--full`` replaces step 2's Lambertian model by the ``lm`` solver's own per-pixel model
 (diffuse, F0, roughness and normal; ρ and F0 projected out in closed form, every hold
@@ -36,8 +36,10 @@ It uses every pixel and photo, so no fit made with the wrong lights chooses them
 (what ``reconstruct --self-calibrate-positions`` runs): positions, gains and every pixel's
 maps fitted together by Gauss–Newton with the pixels eliminated, then the maps fitted
 with its positions and gains (their gradient across the dome and overall factor removed).
-``--replicas=K`` removes the fit's bias estimated from K replicas (``lightpos.BIAS_REPLICAS``,
-0 by default); ``--side=N`` fits on N pixels along the longer side (``POSITION_SIDE``).
+``--pairs=K`` removes the fit's bias measured with K antithetic pairs of replicas
+(``lightpos.BIAS_PAIRS``, 0 by default), ``--steps=N`` sets the Gauss–Newton steps
+(``ITERATIONS``, 10; the replicas need the fit settled: ``--steps=30 --pairs=1``) and
+``--side=N`` fits on N pixels along the longer side (``POSITION_SIDE``).
 Where the intensities could not be read (too little diffuse reflection: the record's
 ``updated`` is false), reconstruct keeps the rig file's places, and so does the bench
 (marked *).
@@ -46,7 +48,7 @@ Where the intensities could not be read (too little diffuse reflection: the reco
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
 
-``--from-truth`` starts the joint fit (``fit_positions``, no bias replicas, 30 steps) at
+``--from-truth`` starts the joint fit (``fit_positions``, its bias left in, 30 steps) at
 the true lights, gains and maps and prints how far it drifts (mm): with the camera's
 noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone.
 
@@ -55,7 +57,7 @@ noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone.
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--replicas=K] [--side=N] [--from-truth[=S]] [--held-out|--others] [--only=NAME] [SIZE]   (default 128)
+[--pairs=K] [--steps=N] [--side=N] [--from-truth[=S]] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
 from __future__ import annotations
@@ -270,11 +272,13 @@ def main() -> None:
             lightpos.ROBUST = float(a.split("=", 1)[1])
         if a.startswith("--side="):  # pixels on the longer side of the joint fit (lightpos.POSITION_SIDE)
             lightpos.POSITION_SIDE = int(a.split("=", 1)[1])
-        if a.startswith("--replicas="):  # the joint fit's bias replicas (lightpos.BIAS_REPLICAS; 0: none)
-            lightpos.BIAS_REPLICAS = int(a.split("=", 1)[1])
+        if a.startswith("--pairs="):  # the joint fit's antithetic bias replicas (lightpos.BIAS_PAIRS; 0: none)
+            lightpos.BIAS_PAIRS = int(a.split("=", 1)[1])
+        if a.startswith("--steps="):  # the joint fit's Gauss–Newton steps (lightpos.ITERATIONS)
+            lightpos.ITERATIONS = int(a.split("=", 1)[1])
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
-    only = [a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--only=")]
+    only = [n for a in sys.argv[1:] if a.startswith("--only=") for n in a.split("=", 1)[1].split(",")]
     size = int(args[0]) if args else 128
     materials = [("paper", generate("paper", size, 1)), ("brick (photo)", photo_material("brick", size))]
     materials += [("leather", generate("leather", size, 1)), ("plastic", generate("plastic", size, 1))]
@@ -303,7 +307,7 @@ def main() -> None:
     else:
         print(f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal nominal  gains +positions (dB)")
     for i, (name, maps) in enumerate(materials):
-        if only and not name.startswith(only[0]):
+        if only and not any(name.startswith(o) for o in only):
             continue
         if matte:
             maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
@@ -327,7 +331,7 @@ def main() -> None:
                 photos, encoding = (photos + truth_noise * z).clamp(0, 1), "linear"
                 saturated = (photos >= 1).any(1, keepdim=True)
             cap = Capture(rig, rig.field_mm, encoding, photos, saturated, tuple(range(24)), true, files)
-            pos, _, _ = fit_positions(cap, maps, gains, iterations=30)
+            pos, _, _ = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0)
             print(f"{name:16s} {float((pos - true.position).norm(dim=1).mean()):12.2f}", flush=True)
             continue
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)

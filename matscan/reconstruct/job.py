@@ -355,7 +355,7 @@ def reconstruct_capture(
         elif cfg.self_calibrate_positions:
             from matscan.reconstruct.lightpos import estimate_positions
 
-            lights, gains, record["positions"], notes = estimate_positions(capture, gains, cfg)
+            lights, gains, record["positions"], notes = estimate_positions(capture, gains, cfg, progress)
             if lights is not None:
                 capture = replace(capture, lights=lights)
         seconds = time.perf_counter() - t0

@@ -28,14 +28,25 @@ normal) the noise shifts them in one direction; the lights, shared by all pixels
 up the shift (the Neyman–Scott problem: more pixels do not remove it). Started at the
 true positions of simulated paper and grass, the fit drifted 0.6 and 1.2 mm with the
 camera's noise, 0.2 mm with a fifth of its variance (noise 0.002); from the rig file,
-grass came to 0.86 mm at 128² and 0.90 at 256² with every pixel used. So the bias can be
-estimated by simulation (:func:`debiased`, a parametric bootstrap: Efron & Tibshirani
-1993, "An introduction to the bootstrap", ch. 10): the maps are fitted again at the
-fitted lights and gains, the sampled pixels rendered from them with fresh noise, fitted
-from those lights, and how far that fit moves them subtracted. It is off
-(``BIAS_REPLICAS`` = 0): on 22 simulated materials it gained 0.13 dB on average (a
-photographed grass and gravel 1.2 and 1.3 dB) but cost a black leather 0.11 dB, which
-fails the rule set before the measurement (docs/rti.md).
+grass came to 0.86 mm at 128² and 0.90 at 256² with every pixel used. So the bias is
+measured by simulation (a parametric bootstrap: Efron & Tibshirani 1993, "An
+introduction to the bootstrap", ch. 10) and removed: the fit's own end (its positions,
+gains and every kept pixel's 9 numbers) is rendered, noise of the fit's noise model is
+added to one replica and subtracted from the other (an antithetic pair: Hammersley &
+Morton 1956), and each replica is fitted as the photos were, started at that truth. To
+first order the noise moves the two fits by equal and opposite amounts, which cancel in
+their mean; what is left is the bias, even in the noise, which is subtracted from the
+positions and log gains (``BIAS_PAIRS``). The fit must then run until it settles
+(``ITERATIONS`` = 30), so that the replicas measure the bias of the estimate the photos
+got: stopped after 10 steps, it ends part way between the rig file and its biased end.
+From the rig file, 128² photographed grass came to 0.37 mm (1.15 after 30 steps without
+the replicas, 0.86 after 10), a black leather 0.66 (1.20; 1.22) and paper 0.57 (0.89;
+0.78), against Cramér–Rao bounds of 0.50, 0.47 and 0.76 mm. It is off by default
+(``BIAS_PAIRS`` = 0, ``ITERATIONS`` = 10) until measured on all the materials of
+docs/rti.md, as the rule there asks; it takes 90 steps where the default takes 10.
+Replicas rendered from maps the ``lm`` solver fitted at the fitted lights instead
+(tried first, with four times the noise variance, not kept) moved that black leather
+from 1.22 to 2.43 mm (docs/rti.md).
 
 Measured on simulated dome24 captures whose LEDs are ±5 mm off (``bench/nearcal.py``,
 docs/rti.md): the Cramér–Rao bound of such photos puts the positions within about
@@ -47,11 +58,12 @@ Each LED stays aimed where the rig file aims it (as ``calibrate --positions``).
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from matscan.capture.folder import Capture
 from matscan.mapset import MapSet
@@ -63,7 +75,9 @@ if TYPE_CHECKING:
     from matscan.reconstruct.job import ReconstructConfig
 
 F64 = torch.float64
-#: Gauss–Newton steps (on simulated dome24 captures the positions settle within 10).
+#: Gauss–Newton steps. With 10 the fit stops part way between the rig file and its end;
+#: to measure its bias (``BIAS_PAIRS``) it must run until it settles: on simulated dome24
+#: captures the positions move little after 30 (module doc).
 ITERATIONS = 10
 #: The capture is reduced to at most this many pixels on its longer side (every
 #: ``factor``-th pixel, as the intensity rounds pick them).
@@ -78,15 +92,13 @@ OUTLIER = 4.0
 #: A light moved farther than this from the rig file's place is reported (as
 #: ``calibrate --positions`` does): a wrong rig file, or a fit that went astray.
 MOVED_WARN_MM = 20.0
-#: Replicas of the capture simulated from the fit whose fits estimate the fit's bias
-#: (:func:`debiased`; 0: none, the default, module doc), and their noise variance as a
-#: multiple of the photos'. The bias grows as the noise variance (float photos of a
-#: photographed grass, fitted from the true positions: 0.66 mm off at noise 0.004, 2.58
-#: at 0.008), a replica's scatter as its square root, so replicas at four times the
-#: variance, their shifts divided by four, estimate the bias with half a plain
-#: replica's scatter.
-BIAS_REPLICAS = 0
-BIAS_NOISE = 4.0
+#: Antithetic pairs of replicas whose fits measure the fit's bias (:func:`fit_positions`,
+#: module doc; 0: the bias is left in, the default until it is measured on every
+#: material of docs/rti.md; with ``ITERATIONS`` = 30, as ``bench/nearcal.py --steps=30
+#: --pairs=1`` sets them). Each pair's noise, added to one replica and subtracted from the
+#: other, moves their fits by equal and opposite amounts to first order, which cancel in
+#: the mean: what is left is the bias, which is even in the noise.
+BIAS_PAIRS = 0
 #: Bounds of the per-pixel numbers during the fit. ρ and F0 may leave [0, 1] a little: held
 #: in, pixels at a bound stalled the steps of the lights (their numbers are not kept).
 _LOW = torch.tensor([-1.0, -1, -1, -1, -1, -1, 0.032, -3, -3], dtype=F64)[:, None]
@@ -244,51 +256,46 @@ def _free_directions(lights: LightSet, near: Tensor) -> Tensor:
     return u[:, : 6 * n - q.shape[1]]
 
 
-def fit_positions(
-    capture: Capture,
-    maps: MapSet,
-    gains: Tensor,
-    iterations: int = ITERATIONS,
-    progress=None,
-) -> tuple[Tensor, Tensor, dict[str, Any]]:
-    """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
-    the maps (module doc).
+@dataclass(frozen=True)
+class _Photos:
+    """What the joint fit fits: the lights (float64; positions where the fit starts), each
+    near light's aim point (N, 3), which lights are near (N,), the pixels' surface points
+    (P, 3), their values (N, 3, P) and which of them are usable (N, 3, P; 1 or 0)."""
 
-    ``capture`` is the capture as calibrated before self-calibration, already reduced to
-    the pixels to use; ``maps`` are maps fitted to its photos divided by ``gains`` (the
-    start), which are gains times any intensity scale of that fit. Directional lights keep
-    their directions. Returns the positions, the gains (the start's overall factor and
-    gradient across the dome kept) and a record."""
-    n = len(capture.files)
-    lights = _double(capture.lights)
-    near = lights.w > 0.5
-    aims = torch.stack(
-        [
-            torch.tensor(capture.rig.lights[k].aim_mm, dtype=F64) if k is not None else torch.zeros(3, dtype=F64)
-            for k in capture.light_indices
-        ]
-    )
-    aims = torch.where(near[:, None], aims, lights.position - lights.axis)  # directional: unused
-    h, w = capture.size
-    pts = surface_points(capture.field_mm, (h, w), dtype=F64).reshape(-1, 3)
-    y = capture.linear(list(range(n))).to(F64).reshape(n, 3, -1)
-    valid = (~capture.saturation(list(range(n)))).to(F64).reshape(n, 1, -1).expand(n, 3, -1)
-    spec = maps.specular.to(F64).reshape(maps.specular.shape[0], -1).expand(3, -1)
-    th = torch.cat(
-        [
-            maps.diffuse.to(F64).reshape(3, -1),
-            spec.clone(),
-            lm._theta_of(maps.roughness.to(F64), maps.normal.to(F64)).reshape(3, -1),
-        ]
-    )
-    start = lights.position.clone()
-    pos, lg = start.clone(), gains.to(F64).log()
+    lights: LightSet
+    aims: Tensor
+    near: Tensor
+    pts: Tensor
+    y: Tensor
+    valid: Tensor
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """The joint fit's end: positions, log gains, the kept pixels (P,) and their numbers
+    (9, kept), the noise model (a, b) and the misfit per value at the start and end."""
+
+    pos: Tensor
+    lg: Tensor
+    used: Tensor
+    th: Tensor
+    noise: tuple[float, float]
+    first: float
+    cost: float
+
+
+def _solve(photos: _Photos, th: Tensor, lg: Tensor, iterations: int, progress=None) -> _Solved:
+    """Gauss–Newton over the lights' positions and log gains and every pixel's 9 numbers
+    ``th`` (9, P), started at ``photos.lights``' positions and ``lg`` (module doc)."""
+    lights, aims, pts, y, valid = photos.lights, photos.aims, photos.pts, photos.y, photos.valid
+    n = len(lights)
+    pos = lights.position.clone()
     m0 = _render(th, _placed(lights, aims, pos, lg.exp()), pts)
     wt, noise = _noise_weights(y, m0, valid)
     per_pixel = (wt * (y - m0) ** 2).sum((0, 1)) / valid.sum((0, 1)).clamp_min(1)
     used = per_pixel <= OUTLIER * per_pixel.median()
     th, y, valid, wt, pts = th[:, used], y[..., used], valid[..., used], wt[..., used], pts[used]
-    basis = _free_directions(lights, near)
+    basis = _free_directions(lights, photos.near)
 
     def residual2(th: Tensor, pos: Tensor, lg: Tensor) -> Tensor:
         """Squared residuals in units of the noise (N, 3, P)."""
@@ -320,72 +327,114 @@ def fit_positions(
             mu *= 4
         if progress is not None:
             progress(it + 1)
-    shift = (pos - start).norm(dim=1)[near]
-    record = {
-        "near_lights": int(near.sum()),
-        "pixels_used": round(float(used.double().mean()), 4),
-        "iterations": iterations,
-        "noise_model": {"a": _sig4(noise[0]), "b": _sig4(noise[1])},  # var = a·m + b
-        "misfit_per_value": {  # robust, in units of the noise model read from the start's residuals
-            "start": round(first / float(valid.sum()), 4),
-            "end": round(cost / float(valid.sum()), 4),
-        },
-        "moved_mm": {
-            "mean": round(float(shift.mean()), 3) if len(shift) else 0.0,
-            "max": round(float(shift.max()), 3) if len(shift) else 0.0,
-        },
-    }
-    return pos.float(), lg.exp().float(), record
+    values = float(valid.sum())
+    return _Solved(pos, lg, used, th, noise, first / values, cost / values)
 
 
-def debiased(
-    capture: Capture, pos: Tensor, gains: Tensor, noise: tuple[float, float], cfg: ReconstructConfig
+def _debiased(
+    photos: _Photos, fit: _Solved, pairs: int, iterations: int, progress=None
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
-    """Positions and gains of :func:`fit_positions` with its bias removed (module doc).
-
-    The maps are fitted (``cfg``) to ``capture`` lit from ``pos`` with ``gains``;
-    ``BIAS_REPLICAS`` captures are rendered from them with noise of variance
-    ``BIAS_NOISE`` · (a·m + b) (``noise``: the fit's model) and fitted from their true
-    lights; the mean shift, divided by ``BIAS_NOISE``, is the bias, subtracted from the
-    positions and the log gains. Returns the positions, the gains and a record."""
-    from matscan.reconstruct.job import reconstruct_capture
-    from matscan.reconstruct.selfcal import with_gains
-    from matscan.render import render_maps
-
-    if BIAS_REPLICAS < 1:
-        return pos, gains, {"replicas": 0}
-    placed = _lit_from(capture, pos)
-    fit = reconstruct_capture(with_gains(placed, gains), cfg, None)
-    lights = placed.lights
-    clean = render_maps(fit.maps, lights.with_intensity(lights.intensity * gains), capture.field_mm)
-    clean = clean * fit.intensity_scale
-    a, b = noise
-    shift_pos, shift_gain = torch.zeros_like(pos), torch.zeros_like(gains)
-    for k in range(BIAS_REPLICAS):
-        z = torch.randn(clean.shape, generator=torch.Generator().manual_seed(k))
-        photos = clean + z * (BIAS_NOISE * (a * clean.clamp_min(0) + b)).sqrt()
-        replica = replace(
-            placed,
-            images=photos.clamp(0, 1),
-            saturated=(photos >= 1).any(1, keepdim=True) | placed.saturated,
-            lut=None,
-            correction=None,
-        )
-        pos_k, gains_k, _ = fit_positions(replica, fit.maps, gains * fit.intensity_scale)
-        shift_pos += (pos_k - pos) / (BIAS_NOISE * BIAS_REPLICAS)
-        shift_gain += (gains_k / (gains * fit.intensity_scale)).log() / (BIAS_NOISE * BIAS_REPLICAS)
-    near = (lights.w > 0.5)[:, None]
-    shift_pos = torch.where(near, shift_pos, torch.zeros_like(shift_pos))
-    norm = shift_pos.norm(dim=1)[near[:, 0]]
+    """The positions and log gains of ``fit`` with their bias removed (module doc): the
+    kept pixels rendered from the fit's own lights, gains and per-pixel numbers, with
+    noise of the fit's model added and subtracted (``pairs`` antithetic pairs), each
+    replica fitted as the photos were, from that truth; their mean shift is the bias."""
+    a, b = fit.noise
+    lights = replace(photos.lights, position=fit.pos)
+    pts, valid = photos.pts[fit.used], photos.valid[..., fit.used]
+    clean = _render(fit.th, _placed(lights, photos.aims, fit.pos, fit.lg.exp()), pts)
+    sd = (a * clean.clamp_min(0) + b).sqrt()
+    shift_pos, shift_lg = torch.zeros_like(fit.pos), torch.zeros_like(fit.lg)
+    for k in range(pairs):
+        z = torch.randn(clean.shape, generator=torch.Generator().manual_seed(k), dtype=F64)
+        for sign in (1.0, -1.0):
+            replica = replace(photos, lights=lights, pts=pts, y=clean + sign * sd * z, valid=valid)
+            done = (2 * k + (sign < 0) + 1) * iterations
+            step = None if progress is None else (lambda i, done=done: progress(done + i))
+            again = _solve(replica, fit.th.clone(), fit.lg.clone(), iterations, step)
+            shift_pos += (again.pos - fit.pos) / (2 * pairs)
+            shift_lg += (again.lg - fit.lg) / (2 * pairs)
+    shift_pos = torch.where(photos.near[:, None], shift_pos, torch.zeros_like(shift_pos))
+    norm = shift_pos.norm(dim=1)[photos.near]
     record = {
-        "replicas": BIAS_REPLICAS,
-        "noise_times": BIAS_NOISE,
+        "pairs": pairs,
         "removed_mm": {
             "mean": round(float(norm.mean()), 3) if len(norm) else 0.0,
             "max": round(float(norm.max()), 3) if len(norm) else 0.0,
         },
     }
-    return pos - shift_pos, gains * (-shift_gain).exp(), record
+    return fit.pos - shift_pos, fit.lg - shift_lg, record
+
+
+def fit_positions(
+    capture: Capture,
+    maps: MapSet,
+    gains: Tensor,
+    iterations: int | None = None,
+    progress=None,
+    bias_pairs: int | None = None,
+) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
+    the maps by ``iterations`` Gauss–Newton steps (``ITERATIONS`` when None), their bias
+    removed with ``bias_pairs`` antithetic pairs of replicas (``BIAS_PAIRS`` when None; 0:
+    left in) (module doc). ``progress`` is called with the steps done so far, of
+    ``iterations`` · (1 + 2 · pairs).
+
+    ``capture`` is the capture as calibrated before self-calibration, already reduced to
+    the pixels to use; ``maps`` are maps fitted to its photos divided by ``gains`` (the
+    start), which are gains times any intensity scale of that fit. Directional lights keep
+    their directions. Returns the positions, the gains (the start's overall factor and
+    gradient across the dome kept) and a record."""
+    n = len(capture.files)
+    lights = _double(capture.lights)
+    near = lights.w > 0.5
+    aims = torch.stack(
+        [
+            torch.tensor(capture.rig.lights[k].aim_mm, dtype=F64) if k is not None else torch.zeros(3, dtype=F64)
+            for k in capture.light_indices
+        ]
+    )
+    aims = torch.where(near[:, None], aims, lights.position - lights.axis)  # directional: unused
+    h, w = capture.size
+    photos = _Photos(
+        lights=lights,
+        aims=aims,
+        near=near,
+        pts=surface_points(capture.field_mm, (h, w), dtype=F64).reshape(-1, 3),
+        y=capture.linear(list(range(n))).to(F64).reshape(n, 3, -1),
+        valid=(~capture.saturation(list(range(n)))).to(F64).reshape(n, 1, -1).expand(n, 3, -1),
+    )
+    spec = maps.specular.to(F64).reshape(maps.specular.shape[0], -1).expand(3, -1)
+    th = torch.cat(
+        [
+            maps.diffuse.to(F64).reshape(3, -1),
+            spec.clone(),
+            lm._theta_of(maps.roughness.to(F64), maps.normal.to(F64)).reshape(3, -1),
+        ]
+    )
+    iterations = ITERATIONS if iterations is None else iterations
+    fit = _solve(photos, th, gains.to(F64).log(), iterations, progress)
+    pairs = BIAS_PAIRS if bias_pairs is None else bias_pairs
+    if pairs > 0:
+        pos, lg, bias = _debiased(photos, fit, pairs, iterations, progress)
+    else:
+        pos, lg, bias = fit.pos, fit.lg, {"pairs": 0}
+    shift = (pos - lights.position).norm(dim=1)[near]
+    record = {
+        "near_lights": int(near.sum()),
+        "pixels_used": round(float(fit.used.double().mean()), 4),
+        "iterations": iterations,
+        "noise_model": {"a": _sig4(fit.noise[0]), "b": _sig4(fit.noise[1])},  # var = a·m + b
+        "misfit_per_value": {  # robust, in units of the noise model read from the start's residuals
+            "start": round(fit.first, 4),
+            "end": round(fit.cost, 4),
+        },
+        "moved_mm": {
+            "mean": round(float(shift.mean()), 3) if len(shift) else 0.0,
+            "max": round(float(shift.max()), 3) if len(shift) else 0.0,
+        },
+        "bias": bias,
+    }
+    return pos.float(), lg.exp().float(), record
 
 
 def _lit_from(capture: Capture, pos: Tensor) -> Capture:
@@ -408,7 +457,7 @@ def _sig4(v: float) -> float:
 
 
 def estimate_positions(
-    capture: Capture, gains: Tensor, cfg: ReconstructConfig
+    capture: Capture, gains: Tensor, cfg: ReconstructConfig, progress: bool = False
 ) -> tuple[LightSet | None, Tensor, dict[str, Any], list[str]]:
     """The photos' lights with the near lights where the photos place them, new gains
     (N, 3), a record and warnings, for a capture whose intensities were self-calibrated
@@ -438,12 +487,11 @@ def estimate_positions(
     small = reduced(capture, factor)
     fit_cfg = replace(cfg, refine="on", solver="lm", self_calibrate=False, self_calibrate_positions=False, validate=0)
     start = reconstruct_capture(with_gains(small, gains), fit_cfg, None)
-    pos, fitted, record = fit_positions(small, start.maps, gains * start.intensity_scale)
-    noise = (record["noise_model"]["a"], record["noise_model"]["b"])
-    pos, fitted, record["bias"] = debiased(small, pos, without_tilt(fitted, capture.lights), noise, fit_cfg)
-    if record["bias"]["replicas"]:
-        moved = (pos - capture.lights.position).norm(dim=1)[near]
-        record["moved_mm"] = {"mean": round(float(moved.mean()), 3), "max": round(float(moved.max()), 3)}
+    total = ITERATIONS * (1 + 2 * BIAS_PAIRS)
+    with tqdm(total=total, desc="positions", unit="step", disable=not progress, leave=False) as bar:
+        pos, fitted, record = fit_positions(
+            small, start.maps, gains * start.intensity_scale, progress=lambda i: bar.update(i - bar.n)
+        )
     record["reduced_by"] = factor
     record["light_positions_mm"] = {
         capture.files[i]: [round(float(v), 3) for v in pos[i]] for i in range(len(pos)) if bool(near[i])
