@@ -52,12 +52,14 @@ gains and maps from these photos, alone and with the rig file's ±5 mm as a prio
 the true lights, gains and maps and prints how far it drifts (mm): with the camera's
 noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone.
 
-``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``.
+``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
+draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
+noise; the materials stay the same); 0, the default, is the draw of the tables in docs/rti.md.
 ``--held-out`` runs bench/selfcal.py's 13 held-out materials instead of the four, and
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--steps=N] [--side=N] [--from-truth[=S]] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
+[--pairs=K] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
 from __future__ import annotations
@@ -278,6 +280,7 @@ def main() -> None:
             lightpos.ITERATIONS = int(a.split("=", 1)[1])
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
+    draw = next((1000 * int(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--seed=")), 0)
     only = [n for a in sys.argv[1:] if a.startswith("--only=") for n in a.split("=", 1)[1].split(",")]
     size = int(args[0]) if args else 128
     materials = [("paper", generate("paper", size, 1)), ("brick (photo)", photo_material("brick", size))]
@@ -311,15 +314,15 @@ def main() -> None:
             continue
         if matte:
             maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
-        gains = led_gains(100 + i)
-        delta = (torch.rand(24, 3, generator=torch.Generator().manual_seed(200 + i)) * 2 - 1) * 5
+        gains = led_gains(100 + i + draw)
+        delta = (torch.rand(24, 3, generator=torch.Generator().manual_seed(200 + i + draw)) * 2 - 1) * 5
         true = moved(nominal, delta)
         if "--bound" in sys.argv:
             alone, prior = bound(maps, true, gains, rig, CameraModel(read_noise=0.002))
             print(f"{name:16s} {alone:12.2f} {prior:12.2f}", flush=True)
             continue
         photos = simulate_images(
-            maps, true.with_intensity(true.intensity * gains), rig.field_mm, CameraModel(read_noise=0.002), seed=i
+            maps, true.with_intensity(true.intensity * gains), rig.field_mm, CameraModel(read_noise=0.002), seed=i + draw
         )
         saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
         files = tuple(f"led_{k:02d}.png" for k in range(24))
