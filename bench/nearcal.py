@@ -59,7 +59,8 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
+[--pairs=K] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--held-out|--others] [--only=NAMES]
+[SIZE]   (default 128)
 """
 
 from __future__ import annotations
@@ -321,9 +322,8 @@ def main() -> None:
             alone, prior = bound(maps, true, gains, rig, CameraModel(read_noise=0.002))
             print(f"{name:16s} {alone:12.2f} {prior:12.2f}", flush=True)
             continue
-        photos = simulate_images(
-            maps, true.with_intensity(true.intensity * gains), rig.field_mm, CameraModel(read_noise=0.002), seed=i + draw
-        )
+        lit = true.with_intensity(true.intensity * gains)
+        photos = simulate_images(maps, lit, rig.field_mm, CameraModel(read_noise=0.002), seed=i + draw)
         saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
         files = tuple(f"led_{k:02d}.png" for k in range(24))
         if truth_noise is not None:  # --from-truth: the fit started at the truth, 30 steps

@@ -347,11 +347,13 @@ def reconstruct_capture(
         gains, record = estimate_gains(capture, cfg)
         lights, notes = None, []
         if cfg.self_calibrate_positions and not record["updated"]:
-            notes.append(
-                "--self-calibrate-positions: the photos that show the lights' intensities are too few to place "
-                "them either (fitted, a simulated metal and black knit lost 1.7-2.0 dB); the rig file's positions "
-                "are kept"
+            why = (
+                "the intensities could not be estimated either"
+                if "rejected" in record
+                else "the photos that show the lights' intensities are too few to place them either "
+                "(fitted, a simulated metal and black knit lost 1.7-2.0 dB)"
             )
+            notes.append(f"--self-calibrate-positions: {why}; the rig file's positions are kept")
         elif cfg.self_calibrate_positions:
             from matscan.reconstruct.lightpos import estimate_positions
 
@@ -376,7 +378,14 @@ def reconstruct_capture(
                 "right scales cost 0.01-0.06 dB on average and up to 0.7 dB on simulated domes (docs/rti.md): "
                 "self-calibrate only if the lights have changed since"
             )
-        if not record["updated"]:
+        if "rejected" in record:
+            before, after = record["rerender_rmse"]["before"], record["rerender_rmse"]["after"]
+            result.warnings.append(
+                f"--self-calibrate: the intensities estimated from the photos re-render them no better than the "
+                f"capture's own (RMSE {after:.4g} against {before:.4g}), which are kept: they were right already, or "
+                "too little of the sample reflects diffusely to read them (a black fabric)"
+            )
+        elif not record["updated"]:
             result.warnings.append(
                 f"--self-calibrate: only {record['photos_read']} of {len(capture.files)} photos show enough "
                 "diffuse reflection to read their light's intensity (a metal or a black fabric shows too little); "
