@@ -52,6 +52,10 @@ gains and maps from these photos, alone and with the rig file's ±5 mm as a prio
 the true lights, gains and maps and prints how far it drifts (mm): with the camera's
 noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone.
 
+``--variants`` (with ``--steps=30 --pairs=1``) scores the joint fit four ways: its end
+with the bias left in, the pair's correction on positions and gains (``BIAS_PAIRS``), on
+the positions alone and on the gains alone.
+
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
 noise; the materials stay the same); 0, the default, is the draw of the tables in docs/rti.md.
@@ -59,8 +63,8 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--held-out|--others] [--only=NAMES]
-[SIZE]   (default 128)
+[--pairs=K] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--variants] [--held-out|--others]
+[--only=NAMES] [SIZE]   (default 128)
 """
 
 from __future__ import annotations
@@ -254,6 +258,40 @@ def bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: Camera
     return float(photos_alone.trace() / n) ** 0.5, float(with_prior.trace() / n) ** 0.5
 
 
+def variants(name: str, cap: Capture, g1: torch.Tensor, cfg, maps: MapSet, true: LightSet, gains, rig) -> None:
+    """The joint fit run as ``estimate_positions`` runs it, then scored four ways: its end
+    (the bias left in), the pair's correction applied to the positions and log gains (as
+    ``BIAS_PAIRS`` does), to the positions alone and to the gains alone: positions' mean
+    error (mm), the gains' RMS error (%, their overall factor and tilt removed) and the
+    novel-light PSNR (dB)."""
+    from matscan.reconstruct.selfcal import without_tilt
+
+    debiased, got = lightpos._debiased, {}
+
+    def spy(photos, fit, pairs, iterations, progress=None):
+        pos, lg, rec = debiased(photos, fit, pairs, iterations, progress)
+        got.update(fit=fit, pos=pos, lg=lg)
+        return pos, lg, rec
+
+    lightpos._debiased = spy
+    try:
+        estimate_positions(cap, g1, cfg)
+    finally:
+        lightpos._debiased = debiased
+    fit = got["fit"]
+    scores = []
+    for pos, lg in ((fit.pos, fit.lg), (got["pos"], got["lg"]), (got["pos"], fit.lg), (fit.pos, got["lg"])):
+        lights = lightpos._lit_from(cap, pos.float()).lights
+        g = without_tilt(lg.exp().float(), cap.lights)
+        res = reconstruct_capture(with_gains(replace(cap, lights=lights), g), cfg)
+        off = (g / gains).log()
+        off = off - off.mean(0)
+        psnr = novel_psnr(res.maps, res.intensity_scale, maps, rig.field_mm)
+        err = float((pos.float() - true.position).norm(dim=1).mean())
+        scores.append(f"{err:5.2f} {100 * float(off.square().mean().sqrt()):5.2f} {psnr:6.2f}")
+    print(f"{name:16s} " + "  |  ".join(scores), flush=True)
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -306,6 +344,8 @@ def main() -> None:
             truth_noise = float(a.split("=", 1)[1]) if "=" in a else 0.0
     if truth_noise is not None:
         print(f"{'material':16s} {'pos err mean':>12s}   (mm, the joint fit started at the true lights and maps)")
+    elif "--variants" in sys.argv:
+        print(f"{'material':16s} (mm, gains %, dB): bias left in  |  pair on both  |  on positions  |  on gains")
     elif "--bound" in sys.argv:
         print(f"{'material':16s} {'photos alone':>12s} {'+ rig file':>12s}   (RMS position error of the bound, mm)")
     else:
@@ -344,6 +384,9 @@ def main() -> None:
         gains_only = reconstruct_capture(with_gains(cap, g1), cfg)
         if "--joint" in sys.argv and not record["updated"]:  # as reconstruct does: the rig file's places
             report(f"{name} *", nominal.position, true, maps, rig, (ideal, plain, gains_only, gains_only))
+            continue
+        if "--variants" in sys.argv:  # the pair's correction applied in parts (with --steps=30 --pairs=1)
+            variants(name, cap, g1, cfg, maps, true, gains, rig)
             continue
         if "--joint" in sys.argv:  # what reconstruct --self-calibrate-positions runs
             lights, g2, _, _ = estimate_positions(cap, g1, cfg)

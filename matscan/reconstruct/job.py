@@ -375,7 +375,7 @@ def reconstruct_capture(
         if scaled and all(k is None or str(k) in scaled for k in capture.light_indices):
             result.warnings.append(
                 "--self-calibrate: the calibration already scales every light; re-estimated from the photos, "
-                "right scales cost 0.01-0.06 dB on average and up to 0.7 dB on simulated domes (docs/rti.md): "
+                "right scales cost up to 0.01 dB on average and 0.08 dB at most on simulated domes (docs/rti.md): "
                 "self-calibrate only if the lights have changed since"
             )
         if "rejected" in record:
