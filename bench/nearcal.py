@@ -317,6 +317,8 @@ def main() -> None:
             lightpos.BIAS_PAIRS = int(a.split("=", 1)[1])
         if a.startswith("--steps="):  # the joint fit's Gauss–Newton steps (lightpos.ITERATIONS)
             lightpos.ITERATIONS = int(a.split("=", 1)[1])
+        if a == "--second-order":  # the joint fit's bias removed by its second-order formula (lightpos.SECOND_ORDER)
+            lightpos.SECOND_ORDER = True
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
     draw = next((1000 * int(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--seed=")), 0)

@@ -102,6 +102,17 @@ MOVED_WARN_MM = 20.0
 #: equal and opposite amounts to first order, which cancel in the mean: what is left is
 #: the bias, which is even in the noise.
 BIAS_PAIRS = 0
+#: Remove the fit's bias by its second-order formula (:func:`fit_positions`, module doc;
+#: False: left in, the default, docs/rti.md says why; use with ``ITERATIONS`` = 30, as
+#: ``bench/nearcal.py --steps=30 --second-order`` sets them). ``BIAS_PAIRS`` above 0 takes
+#: precedence.
+SECOND_ORDER = False
+#: In the second-order formula, each pixel's numbers spread at most as if uniform over
+#: their physical range (ρ and F0 in [0, 1], roughness in [0.02, 1], the slopes within
+#: ±√3, normals within 60° of the sample's): where the photos do not determine a number
+#: (a faint, wide highlight's F0 and roughness), the formula's quadratic approximation
+#: would spread it without bound, as the fit's bounds do not.
+_SPREAD = torch.tensor([0.29] * 6 + [0.28, 1.0, 1.0], dtype=F64)
 #: Bounds of the per-pixel numbers during the fit. ρ and F0 may leave [0, 1] a little: held
 #: in, pixels at a bound stalled the steps of the lights (their numbers are not kept).
 _LOW = torch.tensor([-1.0, -1, -1, -1, -1, -1, 0.032, -3, -3], dtype=F64)[:, None]
@@ -161,13 +172,16 @@ def _jacobians(th: Tensor, lights: LightSet, aims: Tensor, gains: Tensor, pts: T
     return m, jp, jl
 
 
-def normal_equations(th: Tensor, lights: LightSet, aims: Tensor, gains: Tensor, pts: Tensor, wt: Tensor, y: Tensor):
+def normal_equations(
+    th: Tensor, lights: LightSet, aims: Tensor, gains: Tensor, pts: Tensor, wt: Tensor, y: Tensor, jac=None
+):
     """The Gauss–Newton normal equations of the weighted misfit Σ wt (y − m)² over each
     pixel's 9 numbers and the lights' (positions, then log gains; 6N): per pixel the
     block A (P, 9, 9) and gradient g_p (P, 9), the coupling B (P, 9, 6N), the lights'
     block C (6N, 6N) and gradient g_l (6N) (gradients of −½ the misfit). With y = m they
-    are the Fisher information of photos of noise variance 1 / wt."""
-    m, jp, jl = _jacobians(th, lights, aims, gains, pts)
+    are the Fisher information of photos of noise variance 1 / wt. ``jac``: the model
+    and its derivatives (:func:`_jacobians`) where already computed."""
+    m, jp, jl = _jacobians(th, lights, aims, gains, pts) if jac is None else jac
     n, p_count = m.shape[0], m.shape[2]
     r = y - m
     jw = jp.permute(2, 0, 1, 3).reshape(p_count, 3 * n, 9)  # (P, 3N, 9): a batch of matrix products
@@ -372,6 +386,47 @@ def _debiased(
     return fit.pos - shift_pos, fit.lg - shift_lg, record
 
 
+def _second_order(photos: _Photos, fit: _Solved) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """The positions and log gains of ``fit`` with their bias removed by its second-order
+    formula (Box 1971, "Bias in nonlinear estimation"; module doc): each pixel's numbers,
+    fitted from its own few values, spread with covariance C = A⁻¹ (its 9 × 9 block, the
+    spread capped by ``_SPREAD``; numbers at a bound held), and where the model bends that
+    spread leaves a residual whose mean is −½ Σᵢⱼ Cᵢⱼ ∂²m/∂θᵢ∂θⱼ. The lights' Gauss–Newton
+    step towards that mean residual, pixels eliminated as in the fit, is the bias."""
+    a_noise, b_noise = fit.noise
+    lights = replace(photos.lights, position=fit.pos)
+    pts, valid = photos.pts[fit.used], photos.valid[..., fit.used]
+    gains = fit.lg.exp()
+    base = _placed(lights, photos.aims, fit.pos, gains)
+    jac = _jacobians(fit.th, lights, photos.aims, gains, pts)
+    m = jac[0]
+    wt = valid / (a_noise * m.clamp_min(0) + b_noise)
+    a = normal_equations(fit.th, lights, photos.aims, gains, pts, wt, m, jac)[0]
+    held = ((fit.th <= _LOW + 1e-6) | (fit.th >= _HIGH - 1e-6)).T.to(F64)  # (P, 9)
+    cov = torch.linalg.inv(a + torch.diag(_SPREAD**-2)[None] + torch.diag_embed(held * 1e12))
+    ev, vec = torch.linalg.eigh(cov)
+    curved = torch.zeros_like(m)  # Σᵢⱼ Cᵢⱼ ∂²m/∂θᵢ∂θⱼ, along C's principal axes
+    h = 1e-3
+    for k in range(9):
+        u = h * (vec[:, :, k] * ev[:, k : k + 1].clamp_min(0).sqrt()).T  # (9, P)
+        curved += (_render(fit.th + u, base, pts) + _render(fit.th - u, base, pts) - 2 * m) / h**2
+    a, gp, b, c, gl = normal_equations(fit.th, lights, photos.aims, gains, pts, wt, m - 0.5 * curved, jac)
+    _, s, rhs = reduced_system(a, gp, b, c, gl, 0.0)
+    n = len(lights)
+    basis = _free_directions(photos.lights, photos.near)
+    bias = basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs)
+    shift_pos = torch.where(photos.near[:, None], bias[: 3 * n].reshape(n, 3), torch.zeros(n, 3, dtype=F64))
+    norm = shift_pos.norm(dim=1)[photos.near]
+    record = {
+        "second_order": True,
+        "removed_mm": {
+            "mean": round(float(norm.mean()), 3) if len(norm) else 0.0,
+            "max": round(float(norm.max()), 3) if len(norm) else 0.0,
+        },
+    }
+    return fit.pos - shift_pos, fit.lg - bias[3 * n :].reshape(n, 3), record
+
+
 def fit_positions(
     capture: Capture,
     maps: MapSet,
@@ -379,6 +434,7 @@ def fit_positions(
     iterations: int | None = None,
     progress=None,
     bias_pairs: int | None = None,
+    second_order: bool | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
     the maps by ``iterations`` Gauss–Newton steps (``ITERATIONS`` when None), their bias
@@ -423,6 +479,8 @@ def fit_positions(
     pairs = BIAS_PAIRS if bias_pairs is None else bias_pairs
     if pairs > 0:
         pos, lg, bias = _debiased(photos, fit, pairs, iterations, progress)
+    elif SECOND_ORDER if second_order is None else second_order:
+        pos, lg, bias = _second_order(photos, fit)
     else:
         pos, lg, bias = fit.pos, fit.lg, {"pairs": 0}
     shift = (pos - lights.position).norm(dim=1)[near]
