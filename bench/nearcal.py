@@ -40,6 +40,8 @@ with its positions and gains (their gradient across the dome and overall factor 
 (``lightpos.BIAS_PAIRS``, 0 by default), ``--steps=N`` sets the Gauss–Newton steps
 (``ITERATIONS``, 10; the replicas need the fit settled: ``--steps=30 --pairs=1``) and
 ``--side=N`` fits on N pixels along the longer side (``POSITION_SIDE``).
+``--second-order`` removes instead the bias its second-order formula gives
+(``lightpos.SECOND_ORDER``; with ``--steps=30``).
 Where the intensities could not be read (too little diffuse reflection: the record's
 ``updated`` is false), reconstruct keeps the rig file's places, and so does the bench
 (marked *).
@@ -63,7 +65,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--variants] [--held-out|--others]
+[--pairs=K] [--second-order] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--variants] [--held-out|--others]
 [--only=NAMES] [SIZE]   (default 128)
 """
 

@@ -304,9 +304,11 @@ class _Solved:
     cost: float
 
 
-def _solve(photos: _Photos, th: Tensor, lg: Tensor, iterations: int, progress=None) -> _Solved:
+def _solve(photos: _Photos, th: Tensor, lg: Tensor, iterations: int, progress=None, held: bool = False) -> _Solved:
     """Gauss–Newton over the lights' positions and log gains and every pixel's 9 numbers
-    ``th`` (9, P), started at ``photos.lights``' positions and ``lg`` (module doc)."""
+    ``th`` (9, P), started at ``photos.lights``' positions and ``lg`` (module doc). With
+    ``held``, each pixel's numbers are held near their start with the spread ``_SPREAD``
+    (a Gaussian prior), as the second-order formula of the bias assumes."""
     lights, aims, pts, y, valid = photos.lights, photos.aims, photos.pts, photos.y, photos.valid
     n = len(lights)
     pos = lights.position.clone()
@@ -321,8 +323,11 @@ def _solve(photos: _Photos, th: Tensor, lg: Tensor, iterations: int, progress=No
         """Squared residuals in units of the noise (N, 3, P)."""
         return wt * (y - _render(th, _placed(lights, aims, pos, lg.exp()), pts)) ** 2
 
+    start, hold = th.clone(), (_SPREAD**-2 if held else torch.zeros(9, dtype=F64))[:, None]
+
     def pixel_misfit(th: Tensor, pos: Tensor, lg: Tensor) -> Tensor:
-        return (ROBUST**2 * torch.log1p(residual2(th, pos, lg) / ROBUST**2)).sum((0, 1))
+        prior = (hold * (th - start) ** 2).sum(0)
+        return (ROBUST**2 * torch.log1p(residual2(th, pos, lg) / ROBUST**2)).sum((0, 1)) + prior
 
     cost = float(pixel_misfit(th, pos, lg).sum())
     first, mu = cost, 1e-3
@@ -330,6 +335,7 @@ def _solve(photos: _Photos, th: Tensor, lg: Tensor, iterations: int, progress=No
         placed = replace(lights, position=pos)
         irls = wt / (1 + residual2(th, pos, lg) / ROBUST**2)  # Cauchy's weights, reweighted each step
         a, gp, b, c, gl = normal_equations(th, placed, aims, lg.exp(), pts, irls, y)
+        a, gp = a + torch.diag(hold[:, 0]), gp - (hold * (th - start)).T
         for _ in range(8):
             ad, s, rhs = reduced_system(a, gp, b, c, gl, mu)
             dl = basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs)
@@ -475,11 +481,12 @@ def fit_positions(
         ]
     )
     iterations = ITERATIONS if iterations is None else iterations
-    fit = _solve(photos, th, gains.to(F64).log(), iterations, progress)
     pairs = BIAS_PAIRS if bias_pairs is None else bias_pairs
+    second = pairs == 0 and (SECOND_ORDER if second_order is None else second_order)
+    fit = _solve(photos, th, gains.to(F64).log(), iterations, progress, held=second)
     if pairs > 0:
         pos, lg, bias = _debiased(photos, fit, pairs, iterations, progress)
-    elif SECOND_ORDER if second_order is None else second_order:
+    elif second:
         pos, lg, bias = _second_order(photos, fit)
     else:
         pos, lg, bias = fit.pos, fit.lg, {"pairs": 0}
