@@ -9,6 +9,7 @@ import shutil
 
 import pytest
 import torch
+from torch import Tensor
 
 from matscan.calibrate import apply_calibration, with_light_positions
 from matscan.capture import Capture, load_capture
@@ -95,13 +96,15 @@ def drifted():
     return cap, maps, gains, truth, left
 
 
-def _check_removed(drifted, pos, fitted, record, shrink: float, cosine: float) -> None:
+def _check_removed(drifted, pos, fitted) -> Tensor:
+    """What the correction removed from the drifted fit (N, 3), checked: it points along
+    the drift, the positions come nearer the truth, the gains stay."""
     _, _, gains, truth, left = drifted
     drift, removed = (left - truth.position).double(), (left - pos).double()
-    assert float((pos - truth.position).norm(dim=1).mean()) < shrink * float(drift.norm(dim=1).mean())
-    assert float((drift * removed).sum() / (drift.norm() * removed.norm())) > cosine
-    assert record["bias"]["removed_mm"]["mean"] == pytest.approx(float(removed.norm(dim=1).mean()), abs=1e-3)
+    assert float((pos - truth.position).norm(dim=1).mean()) < 0.75 * float(drift.norm(dim=1).mean())
+    assert float((drift * removed).sum() / (drift.norm() * removed.norm())) > 0.7
     assert float((without_tilt(fitted, RIG.light_set()) / gains - 1).abs().max()) < 0.03
+    return removed
 
 
 def test_the_bias_is_measured_by_replicas_and_removed(drifted):
@@ -111,18 +114,20 @@ def test_the_bias_is_measured_by_replicas_and_removed(drifted):
     cap, maps, gains, _, _ = drifted
     pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=1)
     assert record["bias"]["pairs"] == 1
-    _check_removed(drifted, pos, fitted, record, shrink=0.75, cosine=0.7)
+    removed = _check_removed(drifted, pos, fitted)
+    assert record["bias"]["removed_mm"]["mean"] == pytest.approx(float(removed.norm(dim=1).mean()), abs=1e-3)
 
 
 def test_the_second_order_formula_measures_the_bias(drifted):
     """The same drift measured instead by the fit's bias formula (Box 1971): one
     Gauss–Newton step towards the mean residual the pixels' spread leaves where the model
-    bends. What it removes points along the drift, and the positions come nearer the truth
-    (1.73 → 1.20 mm when written, cosine 0.77)."""
+    bends, after a fit that holds each pixel's numbers near their start with that spread.
+    Against the fit above, what the two remove points along the drift, and the positions
+    come nearer the truth (1.73 → 1.09 mm when written, cosine 0.79)."""
     cap, maps, gains, _, _ = drifted
     pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, second_order=True)
-    assert record["bias"]["second_order"] is True
-    _check_removed(drifted, pos, fitted, record, shrink=0.8, cosine=0.6)
+    assert record["bias"]["second_order"] is True and record["bias"]["removed_mm"]["mean"] > 0.3
+    _check_removed(drifted, pos, fitted)
 
 
 def test_positions_need_the_intensities():
