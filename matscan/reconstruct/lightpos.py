@@ -399,10 +399,7 @@ def _debiased(
     norm = shift_pos.norm(dim=1)[photos.near]
     record = {
         "pairs": pairs,
-        "removed_mm": {
-            "mean": round(float(norm.mean()), 3) if len(norm) else 0.0,
-            "max": round(float(norm.max()), 3) if len(norm) else 0.0,
-        },
+        "removed_mm": _mean_max(norm),
     }
     return fit.pos - shift_pos, fit.lg - shift_lg, record
 
@@ -440,10 +437,7 @@ def _second_order(photos: _Photos, fit: _Solved) -> tuple[Tensor, Tensor, dict[s
     norm = shift_pos.norm(dim=1)[photos.near]
     record = {
         "second_order": True,
-        "removed_mm": {
-            "mean": round(float(norm.mean()), 3) if len(norm) else 0.0,
-            "max": round(float(norm.max()), 3) if len(norm) else 0.0,
-        },
+        "removed_mm": _mean_max(norm),
     }
     return fit.pos - shift_pos, fit.lg - bias[3 * n :].reshape(n, 3), record
 
@@ -515,10 +509,7 @@ def fit_positions(
             "start": round(fit.first, 4),
             "end": round(fit.cost, 4),
         },
-        "moved_mm": {
-            "mean": round(float(shift.mean()), 3) if len(shift) else 0.0,
-            "max": round(float(shift.max()), 3) if len(shift) else 0.0,
-        },
+        "moved_mm": _mean_max(shift),
         "bias": bias,
     }
     return pos.float(), lg.exp().float(), record
@@ -537,6 +528,14 @@ def _lit_from(capture: Capture, pos: Tensor) -> Capture:
         position[i] = pos[i]
         axis[i] = (aim - pos[i]) / (aim - pos[i]).norm()
     return replace(capture, lights=replace(lights, position=position, axis=axis))
+
+
+def _mean_max(mm: Tensor) -> dict[str, float]:
+    """The record's mean and largest of distances ``mm`` (0 for none)."""
+    return {
+        "mean": round(float(mm.mean()), 3) if len(mm) else 0.0,
+        "max": round(float(mm.max()), 3) if len(mm) else 0.0,
+    }
 
 
 def _sig4(v: float) -> float:
