@@ -454,7 +454,9 @@ def fit_positions(
     """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
     the maps by ``iterations`` Gauss–Newton steps (``ITERATIONS`` when None), their bias
     removed with ``bias_pairs`` antithetic pairs of replicas (``BIAS_PAIRS`` when None; 0:
-    left in) (module doc). ``progress`` is called with the steps done so far, of
+    left in) or, without pairs and with ``second_order`` (``SECOND_ORDER`` when None), by
+    its second-order formula after a fit that holds the pixels' numbers near their start
+    (module doc). ``progress`` is called with the steps done so far, of
     ``iterations`` · (1 + 2 · pairs).
 
     ``capture`` is the capture as calibrated before self-calibration, already reduced to
