@@ -41,7 +41,8 @@ with its positions and gains (their gradient across the dome and overall factor 
 (``ITERATIONS``, 10; the replicas need the fit settled: ``--steps=30 --pairs=1``) and
 ``--side=N`` fits on N pixels along the longer side (``POSITION_SIDE``).
 ``--second-order`` removes instead the bias its second-order formula gives
-(``lightpos.SECOND_ORDER``; with ``--steps=30``).
+(``lightpos.SECOND_ORDER``; with ``--steps=30``). ``--shared-f0`` fits one F0 for every
+dielectric pixel instead of each pixel's own (``lightpos.SHARED_F0``; with ``--steps=20``).
 Where the intensities could not be read (too little diffuse reflection: the record's
 ``updated`` is false), reconstruct keeps the rig file's places, and so does the bench
 (marked *).
@@ -65,8 +66,8 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--second-order] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--variants] [--held-out|--others]
-[--only=NAMES] [SIZE]   (default 128)
+[--pairs=K] [--second-order] [--shared-f0] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--variants]
+[--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
 from __future__ import annotations
@@ -321,6 +322,8 @@ def main() -> None:
             lightpos.ITERATIONS = int(a.split("=", 1)[1])
         if a == "--second-order":  # the joint fit's bias removed by its second-order formula (lightpos.SECOND_ORDER)
             lightpos.SECOND_ORDER = True
+        if a == "--shared-f0":  # one F0 for the dielectric pixels in the joint fit (lightpos.SHARED_F0)
+            lightpos.SHARED_F0 = True
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
     draw = next((1000 * int(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--seed=")), 0)

@@ -130,6 +130,21 @@ def test_the_second_order_formula_measures_the_bias(drifted):
     _check_removed(drifted, pos, fitted)
 
 
+def test_a_shared_f0_leaves_less_bias(drifted):
+    """Started at the same truth, the fit in which the dielectric pixels share one F0
+    (``SHARED_F0``) drifts less than half as far as the fit in which each pixel has its
+    own (0.53 against 1.73 mm when written), every pixel shares it, and the shared F0
+    stays near the grass's true F0, where it started (0.04; 0.041-0.044 when written)."""
+    cap, maps, gains, truth, left = drifted
+    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, shared_f0=True)
+    drift = float((left - truth.position).norm(dim=1).mean())
+    assert float((pos - truth.position).norm(dim=1).mean()) < 0.5 * drift
+    assert record["shared_f0"]["share"] > 0.95
+    true_f0 = float(maps.specular.mean())
+    assert max(abs(v - true_f0) for v in record["shared_f0"]["value"]) < 0.008
+    assert float((without_tilt(fitted, RIG.light_set()) / gains - 1).abs().max()) < 0.03
+
+
 def test_positions_need_the_intensities():
     with pytest.raises(MatscanError, match="self_calibrate_positions: needs self_calibrate"):
         ReconstructConfig(self_calibrate_positions=True)

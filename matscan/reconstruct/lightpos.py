@@ -128,6 +128,21 @@ SECOND_ORDER = False
 #: start put it, so that the formula, taken at the fit's end, described another fit than
 #: the one made (docs/rti.md).
 _SPREAD = torch.tensor([0.29] * 6 + [0.28, 1.0, 1.0], dtype=F64)
+#: One F0 (RGB) shared by every pixel whose start gives a dielectric's (each channel below
+#: ``SHARED_BELOW``), fitted with the lights, instead of each pixel's own (module doc;
+#: False: each pixel its own, the default, docs/rti.md says why; use with
+#: ``ITERATIONS`` = 20, as ``bench/nearcal.py --steps=20 --shared-f0`` sets them). Each
+#: pixel's roughness is then searched again over a grid half way through the steps and
+#: twice more, three steps apart (``_RESEED_GRID``).
+SHARED_F0 = False
+#: The start's F0 below which a pixel shares the one F0 (``SHARED_F0``): dielectrics are
+#: about 0.02-0.08; a metal's or a foil's pixels keep their own.
+SHARED_BELOW = 0.1
+#: Roughness values each pixel is tried at when searched again (``SHARED_F0``): the start
+#: (the ``lm`` solver's maps) and the shared F0's first steps leave some pixels in another
+#: valley of their misfit, where the Gauss–Newton steps cannot leave (a photographed
+#: brick's lights stayed 1.5 mm off, 0.45 mm with the search).
+_RESEED_GRID = torch.linspace(0.05, 1.0, 20, dtype=F64)
 #: Bounds of the per-pixel numbers during the fit. ρ and F0 may leave [0, 1] a little: held
 #: in, pixels at a bound stalled the steps of the lights (their numbers are not kept).
 _LOW = torch.tensor([-1.0, -1, -1, -1, -1, -1, 0.032, -3, -3], dtype=F64)[:, None]
@@ -308,7 +323,8 @@ class _Photos:
 @dataclass(frozen=True)
 class _Solved:
     """The joint fit's end: positions, log gains, the kept pixels (P,) and their numbers
-    (9, kept), the noise model (a, b) and the misfit per value at the start and end."""
+    (9, kept), the noise model (a, b), the misfit per value at the start and end, and
+    which kept pixels shared one F0 (None: each its own)."""
 
     pos: Tensor
     lg: Tensor
@@ -317,13 +333,62 @@ class _Solved:
     noise: tuple[float, float]
     first: float
     cost: float
+    shared: Tensor | None = None  # which kept pixels share one F0 (``SHARED_F0``)
 
 
-def _solve(photos: _Photos, th: Tensor, lg: Tensor, iterations: int, progress=None, held: bool = False) -> _Solved:
+def _with_shared_f0(a: Tensor, gp: Tensor, b: Tensor, c: Tensor, gl: Tensor, shared: Tensor):
+    """The normal equations (:func:`normal_equations`) with the F0 of the pixels ``shared``
+    (P,) replaced by one F0 (RGB) for all of them, appended to the lights' numbers: the
+    pixels' blocks keep their other numbers, their F0 rows move to the coupling and the
+    lights' block, summed over the pixels that share it."""
+    s = shared.to(F64)
+    bf = a[:, :, 3:6] * s[:, None, None]  # (P, 9, 3): each pixel's numbers × the shared F0
+    cff = (a[:, 3:6, 3:6] * s[:, None, None]).sum(0)
+    clf = torch.einsum("pjk,p->kj", b[:, 3:6, :], s)  # (6N, 3): the lights × the shared F0
+    glf = (gp[:, 3:6] * s[:, None]).sum(0)
+    a, gp, b = a.clone(), gp.clone(), b.clone()
+    a[shared, 3:6, :] = 0
+    a[shared, :, 3:6] = 0
+    a[shared, 3:6, 3:6] = torch.eye(3, dtype=F64)
+    gp[shared, 3:6] = 0
+    b[shared, 3:6, :] = 0
+    bf[shared, 3:6, :] = 0
+    c = torch.cat([torch.cat([c, clf], 1), torch.cat([clf.T, cff], 1)], 0)
+    return a, gp, torch.cat([b, bf], 2), c, torch.cat([gl, glf])
+
+
+def _reseeded(th: Tensor, misfit, lights: LightSet, pts: Tensor, y: Tensor, wt: Tensor) -> Tensor:
+    """``th`` (9, P) with each pixel's roughness at the value of ``_RESEED_GRID`` whose
+    fit (ρ by weighted least squares, F0 and normal kept) lowers the pixel's ``misfit``
+    (a function of th giving (P,)) most, where one does."""
+    best, th = misfit(th), th.clone()
+    for r in _RESEED_GRID:
+        t = th.clone()
+        t[6] = r
+        a, s1, s0 = lm.bases(t[6:9], lm.geometry(lights, pts))
+        rest = y - t[None, 3:6] * s1 - s0
+        t[0:3] = ((wt * a * rest).sum(0) / (wt * a * a).sum(0).clamp_min(1e-12)).clamp(-1, 2)
+        tried = misfit(t)
+        better = tried < best
+        th, best = torch.where(better[None], t, th), torch.where(better, tried, best)
+    return th
+
+
+def _solve(
+    photos: _Photos,
+    th: Tensor,
+    lg: Tensor,
+    iterations: int,
+    progress=None,
+    held: bool = False,
+    shared_f0: bool = False,
+) -> _Solved:
     """Gauss–Newton over the lights' positions and log gains and every pixel's 9 numbers
     ``th`` (9, P), started at ``photos.lights``' positions and ``lg`` (module doc). With
     ``held``, each pixel's numbers are held near their start with the spread ``_SPREAD``
-    (a Gaussian prior), as the second-order formula of the bias assumes."""
+    (a Gaussian prior), as the second-order formula of the bias assumes. With
+    ``shared_f0``, the pixels whose start's F0 is a dielectric's share one F0, fitted with
+    the lights (``SHARED_F0``)."""
     lights, aims, pts, y, valid = photos.lights, photos.aims, photos.pts, photos.y, photos.valid
     n = len(lights)
     pos = lights.position.clone()
@@ -333,6 +398,14 @@ def _solve(photos: _Photos, th: Tensor, lg: Tensor, iterations: int, progress=No
     used = per_pixel <= OUTLIER * per_pixel.median()
     th, y, valid, wt, pts = th[:, used], y[..., used], valid[..., used], wt[..., used], pts[used]
     basis = _free_directions(lights, photos.near)
+    shared = (th[3:6] < SHARED_BELOW).all(0) if shared_f0 else torch.zeros(th.shape[1], dtype=torch.bool)
+    extra = 3 if shared_f0 else 0
+    if extra:
+        th = th.clone()
+        th[3:6, shared] = th[3:6, shared].mean(1, keepdim=True)  # the shared F0 starts at their mean
+        basis = torch.block_diag(basis, torch.eye(extra, dtype=F64))
+        half = iterations // 2
+        reseeds = {half, half + 3, half + 6} if iterations >= 8 else set()
 
     def residual2(th: Tensor, pos: Tensor, lg: Tensor) -> Tensor:
         """Squared residuals in units of the noise (N, 3, P)."""
@@ -347,20 +420,31 @@ def _solve(photos: _Photos, th: Tensor, lg: Tensor, iterations: int, progress=No
     cost = float(pixel_misfit(th, pos, lg).sum())
     first, mu = cost, 1e-3
     for it in range(iterations):
+        if extra and it in reseeds:
+            at = _placed(lights, aims, pos, lg.exp())
+            th = _reseeded(th, lambda t, pos=pos, lg=lg: pixel_misfit(t, pos, lg), at, pts, y, wt)
+            cost = float(pixel_misfit(th, pos, lg).sum())
         placed = replace(lights, position=pos)
         irls = wt / (1 + residual2(th, pos, lg) / ROBUST**2)  # Cauchy's weights, reweighted each step
         a, gp, b, c, gl = normal_equations(th, placed, aims, lg.exp(), pts, irls, y)
         a, gp = a + torch.diag(hold[:, 0]), gp - (hold * (th - start)).T
+        if extra:
+            a, gp, b, c, gl = _with_shared_f0(a, gp, b, c, gl, shared)
         for _ in range(8):
             ad, s, rhs = reduced_system(a, gp, b, c, gl, mu)
             dl = basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs)
             dp = torch.linalg.solve(ad, (gp - torch.einsum("pik,k->pi", b, dl))[..., None])[..., 0]
             pos_t = pos + dl[: 3 * n].reshape(n, 3)
-            lg_t = lg + dl[3 * n :].reshape(n, 3)
-            th_t = torch.max(torch.min(th + dp.T, _HIGH), _LOW)
-            moved, kept = pixel_misfit(th_t, pos_t, lg_t), pixel_misfit(th, pos_t, lg_t)
+            lg_t = lg + dl[3 * n : 6 * n].reshape(n, 3)
+            base = th
+            if extra:  # the shared F0's step, for every pixel that shares it
+                base = th.clone()
+                base[3:6, shared] += dl[6 * n :, None]
+                base = torch.max(torch.min(base, _HIGH), _LOW)
+            th_t = torch.max(torch.min(base + dp.T, _HIGH), _LOW)
+            moved, kept = pixel_misfit(th_t, pos_t, lg_t), pixel_misfit(base, pos_t, lg_t)
             better = moved <= kept
-            th_t = torch.where(better[None], th_t, th)
+            th_t = torch.where(better[None], th_t, base)
             cost_t = float(torch.where(better, moved, kept).sum())
             if cost_t < cost:
                 th, pos, lg, cost = th_t, pos_t, lg_t, cost_t
@@ -370,7 +454,7 @@ def _solve(photos: _Photos, th: Tensor, lg: Tensor, iterations: int, progress=No
         if progress is not None:
             progress(it + 1)
     values = float(valid.sum())
-    return _Solved(pos, lg, used, th, noise, first / values, cost / values)
+    return _Solved(pos, lg, used, th, noise, first / values, cost / values, shared if extra else None)
 
 
 def _debiased(
@@ -450,13 +534,15 @@ def fit_positions(
     progress=None,
     bias_pairs: int | None = None,
     second_order: bool | None = None,
+    shared_f0: bool | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
     the maps by ``iterations`` Gauss–Newton steps (``ITERATIONS`` when None), their bias
     removed with ``bias_pairs`` antithetic pairs of replicas (``BIAS_PAIRS`` when None; 0:
     left in) or, without pairs and with ``second_order`` (``SECOND_ORDER`` when None), by
     its second-order formula after a fit that holds the pixels' numbers near their start
-    (module doc). ``progress`` is called with the steps done so far, of
+    (module doc). With ``shared_f0`` (``SHARED_F0`` when None) the dielectric pixels share
+    one F0 in the fit. ``progress`` is called with the steps done so far, of
     ``iterations`` · (1 + 2 · pairs).
 
     ``capture`` is the capture as calibrated before self-calibration, already reduced to
@@ -494,7 +580,8 @@ def fit_positions(
     iterations = ITERATIONS if iterations is None else iterations
     pairs = BIAS_PAIRS if bias_pairs is None else bias_pairs
     second = pairs == 0 and (SECOND_ORDER if second_order is None else second_order)
-    fit = _solve(photos, th, gains.to(F64).log(), iterations, progress, held=second)
+    shared = SHARED_F0 if shared_f0 is None else shared_f0
+    fit = _solve(photos, th, gains.to(F64).log(), iterations, progress, held=second, shared_f0=shared)
     if pairs > 0:
         pos, lg, bias = _debiased(photos, fit, pairs, iterations, progress)
     elif second:
@@ -514,6 +601,12 @@ def fit_positions(
         "moved_mm": _mean_max(shift),
         "bias": bias,
     }
+    if fit.shared is not None:
+        one = fit.th[3:6, fit.shared][:, 0] if bool(fit.shared.any()) else torch.zeros(3)
+        record["shared_f0"] = {  # the one F0 of the dielectric pixels, and their share of those used
+            "share": round(float(fit.shared.double().mean()), 4),
+            "value": [round(float(v), 4) for v in one],
+        }
     return pos.float(), lg.exp().float(), record
 
 
