@@ -35,7 +35,16 @@ from matscan.train import (
 ROOT = Path(__file__).resolve().parent.parent
 
 CFG = TrainConfig(
-    preset="tiny", crop=32, batch=2, val_every=4, val_count=2, workers=0, render_lights=2, steps=6, log_every=1
+    preset="tiny",
+    crop=32,
+    batch=2,
+    val_every=4,
+    val_count=2,
+    workers=0,
+    render_lights=2,
+    steps=6,
+    log_every=1,
+    device="cpu",  # exact comparisons: a CUDA machine would run "auto" there, where resumes differ in the last bits
 )
 
 
