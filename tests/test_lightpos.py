@@ -16,6 +16,7 @@ from matscan.capture import Capture, load_capture
 from matscan.capture.folder import write_capture
 from matscan.capture.virtual import CameraModel, simulate_images
 from matscan.errors import MatscanError
+from matscan.mapset import MapSet
 from matscan.materials.photos import photo_material
 from matscan.materials.procedural import generate
 from matscan.reconstruct import ReconstructConfig, reconstruct_capture
@@ -143,6 +144,31 @@ def test_a_shared_f0_leaves_less_bias(drifted):
     true_f0 = float(maps.specular.mean())
     assert max(abs(v - true_f0) for v in record["shared_f0"]["value"]) < 0.008
     assert float((without_tilt(fitted, RIG.light_set()) / gains - 1).abs().max()) < 0.03
+
+
+def test_the_shared_f0_starts_where_the_photos_put_it(drifted):
+    """Started with every pixel's F0 at 0.012 (a start that read the grass's highlights too
+    faint; its true F0 is 0.04), the shared F0 starts, before any step, at the value of the
+    scan that fits the photos best: within 0.008 of the truth."""
+    cap, maps, gains, _, _ = drifted
+    faint = MapSet(**{**maps.present(), "specular": torch.full_like(maps.specular, 0.012)})
+    _, _, record = fit_positions(cap, faint, gains, iterations=0, bias_pairs=0, shared_f0=True)
+    assert record["shared_f0"]["share"] > 0.95
+    true_f0 = float(maps.specular.mean())
+    assert max(abs(v - true_f0) for v in record["shared_f0"]["value"]) < 0.008
+
+
+def test_no_f0_is_shared_where_the_photos_show_no_dielectric_highlight():
+    """A matte paper (F0 0): the pixels fit best with a shared F0 below any dielectric's
+    (``SHARED_MIN``), so none is shared and each pixel keeps its own."""
+    maps = generate("paper", 32, 1)
+    maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
+    offsets, gains = _offsets(), _gains()
+    photos = _photos(maps, offsets, gains, noise=0.001)
+    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
+    cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), _true_lights(offsets), FILES)
+    _, _, record = fit_positions(cap, maps, gains, iterations=2, bias_pairs=0, shared_f0=True)
+    assert record["shared_f0"] == {"share": 0.0, "value": None}
 
 
 def test_positions_need_the_intensities():

@@ -158,6 +158,15 @@ SHARED_BELOW = 0.1
 #: valley of their misfit, where the Gauss–Newton steps cannot leave (a photographed
 #: brick's lights stayed 1.5 mm off, 0.45 mm with the search).
 _RESEED_GRID = torch.linspace(0.05, 1.0, 20, dtype=F64)
+#: The shared F0's values tried before the steps (``SHARED_F0``), each pixel's roughness
+#: searched again at each (``_RESEED_GRID``): the start's own F0 can be far from the
+#: material's (a woven twill's 0.015 for a true 0.029, a varnish's 0.020 for 0.047), and
+#: from there the steps drew the lights away rather than move the shared F0 (docs/rti.md).
+_F0_GRID = torch.tensor([0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03, 0.035, 0.04, 0.05, 0.06, 0.08], dtype=F64)
+#: A dielectric's F0 is at least water's (n = 1.33: 0.02). Where the pixels kept fit best
+#: with a lower shared F0 they show no dielectric's highlight (a lacquer's sharp ones are
+#: among the pixels left out) and keep their own F0 (``SHARED_F0``).
+SHARED_MIN = 0.02
 #: Bounds of the per-pixel numbers during the fit. ρ and F0 may leave [0, 1] a little: held
 #: in, pixels at a bound stalled the steps of the lights (their numbers are not kept).
 _LOW = torch.tensor([-1.0, -1, -1, -1, -1, -1, 0.032, -3, -3], dtype=F64)[:, None]
@@ -389,6 +398,25 @@ def _reseeded(th: Tensor, misfit, lights: LightSet, pts: Tensor, y: Tensor, wt: 
     return th
 
 
+def _shared_start(th: Tensor, shared: Tensor, lights: LightSet, pts: Tensor, y: Tensor, wt: Tensor):
+    """``th`` (9, P) with the F0 of the pixels ``shared`` at the value of ``_F0_GRID`` that,
+    each pixel's roughness searched again (:func:`_reseeded`), fits the photos best
+    (Cauchy's loss, as the steps weigh them), and that value."""
+
+    def misfit(t: Tensor) -> Tensor:
+        return (ROBUST**2 * torch.log1p(wt * (y - _render(t, lights, pts)) ** 2 / ROBUST**2)).sum((0, 1))
+
+    best = None
+    for f in _F0_GRID:
+        t = th.clone()
+        t[3:6, shared] = f
+        t = _reseeded(t, misfit, lights, pts, y, wt)
+        cost = float(misfit(t).sum())
+        if best is None or cost < best[0]:
+            best = (cost, float(f), t)
+    return best[2], best[1]
+
+
 def _solve(
     photos: _Photos,
     th: Tensor,
@@ -397,13 +425,15 @@ def _solve(
     progress=None,
     held: bool = False,
     shared_f0: bool = False,
+    searched: bool = False,
 ) -> _Solved:
     """Gauss–Newton over the lights' positions and log gains and every pixel's 9 numbers
     ``th`` (9, P), started at ``photos.lights``' positions and ``lg`` (module doc). With
     ``held``, each pixel's numbers are held near their start with the spread ``_SPREAD``
     (a Gaussian prior), as the second-order formula of the bias assumes. With
     ``shared_f0``, the pixels whose start's F0 is a dielectric's share one F0, fitted with
-    the lights (``SHARED_F0``)."""
+    the lights (``SHARED_F0``), started at the value of ``_F0_GRID`` that fits best; with
+    ``searched`` every pixel starts at the roughness searched there, else at the start's."""
     lights, aims, pts, y, valid = photos.lights, photos.aims, photos.pts, photos.y, photos.valid
     n = len(lights)
     pos = lights.position.clone()
@@ -414,10 +444,15 @@ def _solve(
     th, y, valid, wt, pts = th[:, used], y[..., used], valid[..., used], wt[..., used], pts[used]
     basis = _free_directions(lights, photos.near)
     shared = (th[3:6] < SHARED_BELOW).all(0) if shared_f0 else torch.zeros(th.shape[1], dtype=torch.bool)
-    extra = 3 if shared_f0 else 0
+    if shared.any():
+        scanned, f0 = _shared_start(th, shared, _placed(lights, aims, pos, lg.exp()), pts, y, wt)
+        if f0 >= SHARED_MIN:
+            th = scanned if searched else th.clone()
+            th[3:6, shared] = f0
+        else:  # the pixels kept show no dielectric's highlight: each keeps its own
+            shared = torch.zeros_like(shared)
+    extra = 3 if shared.any() else 0
     if extra:
-        th = th.clone()
-        th[3:6, shared] = th[3:6, shared].mean(1, keepdim=True)  # the shared F0 starts at their mean
         basis = torch.block_diag(basis, torch.eye(extra, dtype=F64))
         half = iterations // 2
         reseeds = {half, half + 3, half + 6} if iterations >= 8 else set()
@@ -469,7 +504,7 @@ def _solve(
         if progress is not None:
             progress(it + 1)
     values = float(valid.sum())
-    return _Solved(pos, lg, used, th, noise, first / values, cost / values, shared if extra else None)
+    return _Solved(pos, lg, used, th, noise, first / values, cost / values, shared if shared_f0 else None)
 
 
 def _debiased(
@@ -597,6 +632,13 @@ def fit_positions(
     second = pairs == 0 and (SECOND_ORDER if second_order is None else second_order)
     shared = SHARED_F0 if shared_f0 is None else shared_f0
     fit = _solve(photos, th, gains.to(F64).log(), iterations, progress, held=second, shared_f0=shared)
+    if shared and fit.shared is not None and bool(fit.shared.any()):
+        # once more with every pixel's roughness searched at the shared F0's start: the end that
+        # fits the photos better is kept (``_F0_GRID``; the start's roughness suits rough
+        # materials, the searched one glossy ones, docs/rti.md)
+        later = None if progress is None else (lambda i: progress(iterations + i))
+        other = _solve(photos, th, gains.to(F64).log(), iterations, later, held=second, shared_f0=True, searched=True)
+        fit = other if other.cost < fit.cost else fit
     if pairs > 0:
         pos, lg, bias = _debiased(photos, fit, pairs, iterations, progress)
     elif second:
@@ -617,10 +659,11 @@ def fit_positions(
         "bias": bias,
     }
     if fit.shared is not None:
-        one = fit.th[3:6, fit.shared][:, 0] if bool(fit.shared.any()) else torch.zeros(3)
-        record["shared_f0"] = {  # the one F0 of the dielectric pixels, and their share of those used
+        one = fit.th[3:6, fit.shared][:, 0] if bool(fit.shared.any()) else None
+        # the one F0 of the dielectric pixels (None: none shared), and their share of those used
+        record["shared_f0"] = {
             "share": round(float(fit.shared.double().mean()), 4),
-            "value": [round(float(v), 4) for v in one],
+            "value": None if one is None else [round(float(v), 4) for v in one],
         }
     return pos.float(), lg.exp().float(), record
 
@@ -683,7 +726,7 @@ def estimate_positions(
     small = reduced(capture, factor)
     fit_cfg = replace(cfg, refine="on", solver="lm", self_calibrate=False, self_calibrate_positions=False, validate=0)
     start = reconstruct_capture(with_gains(small, gains), fit_cfg, None)
-    total = ITERATIONS * (1 + 2 * BIAS_PAIRS)
+    total = ITERATIONS * (1 + 2 * BIAS_PAIRS + (1 if SHARED_F0 else 0))  # the shared F0's second start
     with tqdm(total=total, desc="positions", unit="step", disable=not progress, leave=False) as bar:
         pos, fitted, record = fit_positions(
             small, start.maps, gains * start.intensity_scale, progress=lambda i: bar.update(i - bar.n)
