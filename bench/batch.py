@@ -23,6 +23,9 @@ from matscan.rig import builtin_rig
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 8
     size = int(sys.argv[2]) if len(sys.argv) > 2 else 128
     root = Path(tempfile.mkdtemp(prefix="matscan-bench-batch-"))

@@ -23,6 +23,9 @@ from matscan.materials.procedural import random_material
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     crop = int(sys.argv[1]) if len(sys.argv) > 1 else 256
     count = int(sys.argv[2]) if len(sys.argv) > 2 else 200
     torch.set_num_threads(1)

@@ -67,6 +67,9 @@ def held_out_errors(capture: Capture, solver: str) -> list[float]:
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     torch.set_num_threads(2)
     size = int(sys.argv[1]) if len(sys.argv) > 1 else 128
     solvers = sys.argv[2].split(",") if len(sys.argv) > 2 else ["lm", "adam"]

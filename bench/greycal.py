@@ -86,6 +86,9 @@ def calibrated(cap: Capture, scales: dict, flats: dict[str, torch.Tensor]) -> Ca
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     torch.set_num_threads(2)
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     opts = dict(a[2:].split("=", 1) for a in sys.argv[1:] if a.startswith("--"))

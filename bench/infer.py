@@ -55,6 +55,9 @@ def case(name: str) -> dict:
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     if len(sys.argv) == 2:
         print(json.dumps(case(sys.argv[1])))
         return

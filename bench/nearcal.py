@@ -305,6 +305,9 @@ def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     torch.set_num_threads(2)
     prior = 0.0
     for a in sys.argv[1:]:

@@ -107,6 +107,9 @@ def case(which: str, size: int) -> dict:
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     if len(sys.argv) == 3:
         print(json.dumps(case(sys.argv[1], int(sys.argv[2]))))
         return

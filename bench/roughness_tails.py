@@ -50,6 +50,9 @@ def photos(rig, lights, rho: float, f0, r: float) -> torch.Tensor:
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     r0s = [float(a) for a in sys.argv[1:]] or [0.22, 0.30]
     dome = builtin_rig("dome24")
     rig_lights, novel = dome.light_set(), evaluation_lights(dome)

@@ -71,6 +71,9 @@ def scores(pred: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     torch.set_num_threads(2)
     size = int(sys.argv[1]) if len(sys.argv) > 1 else 128
     materials = [(f"{n} (artist)", artist_material(n, size)) for n in ARTIST_NAMES]

@@ -85,6 +85,9 @@ def novel_psnr(pred, scale: float, truth, field_mm) -> float:
 
 
 def main() -> None:
+    from _usage import usage  # bench/ is the script's folder, on sys.path
+
+    usage(__doc__)
     torch.set_num_threads(2)
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     for a in sys.argv[1:]:
