@@ -74,8 +74,12 @@ misfit (the shared F0 moves far from the start's) are searched again over a grid
 roughness half way through the steps. Over three draws of bench/nearcal.py's dome it
 brought a leather, grass and gravel within 0.5 dB of the ideal dome's relighting on each
 and paper on two, but drew the lights of glossy dielectrics (a varnish, a lacquer: sharp
-highlights, each pixel's F0 well determined) 2-9 mm away: it failed the rule set before
-the run and is off (docs/rti.md).
+highlights) 2-9 mm away: it failed the rule set before
+the run and is off (docs/rti.md). A trace showed why: the shared F0 started at the
+mean of the start's, which read those F0 low (a lacquer's 0.001 for 0.04), and the steps
+moved the lights rather than the shared F0. It now starts where a scan of the photos puts
+it (``_F0_GRID``), is not shared where that is below any dielectric's (``SHARED_MIN``),
+and the fit runs from two starts, keeping the end that fits better.
 
 Measured on simulated dome24 captures whose LEDs are ±5 mm off (``bench/nearcal.py``,
 docs/rti.md): the Cramér–Rao bound of such photos puts the positions within about
