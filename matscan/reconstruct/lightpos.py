@@ -362,6 +362,7 @@ class _Solved:
     first: float
     cost: float
     shared: Tensor | None = None  # which kept pixels share one F0 (``SHARED_F0``)
+    scan: tuple[Tensor, float] | None = None  # the shared F0's scan (:func:`_shared_start`)
 
 
 def _with_shared_f0(a: Tensor, gp: Tensor, b: Tensor, c: Tensor, gl: Tensor, shared: Tensor):
@@ -430,6 +431,7 @@ def _solve(
     held: bool = False,
     shared_f0: bool = False,
     searched: bool = False,
+    scan: tuple[Tensor, float] | None = None,
 ) -> _Solved:
     """Gauss–Newton over the lights' positions and log gains and every pixel's 9 numbers
     ``th`` (9, P), started at ``photos.lights``' positions and ``lg`` (module doc). With
@@ -437,7 +439,8 @@ def _solve(
     (a Gaussian prior), as the second-order formula of the bias assumes. With
     ``shared_f0``, the pixels whose start's F0 is a dielectric's share one F0, fitted with
     the lights (``SHARED_F0``), started at the value of ``_F0_GRID`` that fits best; with
-    ``searched`` every pixel starts at the roughness searched there, else at the start's."""
+    ``searched`` every pixel starts at the roughness searched there, else at the start's;
+    ``scan``: that scan, from an earlier call on the same photos and start."""
     lights, aims, pts, y, valid = photos.lights, photos.aims, photos.pts, photos.y, photos.valid
     n = len(lights)
     pos = lights.position.clone()
@@ -449,9 +452,10 @@ def _solve(
     basis = _free_directions(lights, photos.near)
     shared = (th[3:6] < SHARED_BELOW).all(0) if shared_f0 else torch.zeros(th.shape[1], dtype=torch.bool)
     if shared.any():
-        scanned, f0 = _shared_start(th, shared, _placed(lights, aims, pos, lg.exp()), pts, y, wt)
+        scan = scan or _shared_start(th, shared, _placed(lights, aims, pos, lg.exp()), pts, y, wt)
+        scanned, f0 = scan
         if f0 >= SHARED_MIN:
-            th = scanned if searched else th.clone()
+            th = (scanned if searched else th).clone()
             th[3:6, shared] = f0
         else:  # the pixels kept show no dielectric's highlight: each keeps its own
             shared = torch.zeros_like(shared)
@@ -508,7 +512,8 @@ def _solve(
         if progress is not None:
             progress(it + 1)
     values = float(valid.sum())
-    return _Solved(pos, lg, used, th, noise, first / values, cost / values, shared if shared_f0 else None)
+    kept = shared if shared_f0 else None
+    return _Solved(pos, lg, used, th, noise, first / values, cost / values, kept, scan if extra else None)
 
 
 def _debiased(
@@ -636,13 +641,15 @@ def fit_positions(
     second = pairs == 0 and (SECOND_ORDER if second_order is None else second_order)
     shared = SHARED_F0 if shared_f0 is None else shared_f0
     fit = _solve(photos, th, gains.to(F64).log(), iterations, progress, held=second, shared_f0=shared)
+    roughness = None  # which start's end was kept where an F0 was shared
     if shared and fit.shared is not None and bool(fit.shared.any()):
         # once more with every pixel's roughness searched at the shared F0's start: the end that
         # fits the photos better is kept (``_F0_GRID``; the start's roughness suits rough
         # materials, the searched one glossy ones, docs/rti.md)
         later = None if progress is None else (lambda i: progress(iterations + i))
-        other = _solve(photos, th, gains.to(F64).log(), iterations, later, held=second, shared_f0=True, searched=True)
-        fit = other if other.cost < fit.cost else fit
+        lg0 = gains.to(F64).log()
+        other = _solve(photos, th, lg0, iterations, later, held=second, shared_f0=True, searched=True, scan=fit.scan)
+        fit, roughness = (other, "searched") if other.cost < fit.cost else (fit, "start")
     if pairs > 0:
         pos, lg, bias = _debiased(photos, fit, pairs, iterations, progress)
     elif second:
@@ -668,6 +675,7 @@ def fit_positions(
         record["shared_f0"] = {
             "share": round(float(fit.shared.double().mean()), 4),
             "value": None if one is None else [round(float(v), 4) for v in one],
+            "roughness": roughness,  # the kept end's start: "start" (the maps'), "searched", None
         }
     return pos.float(), lg.exp().float(), record
 
