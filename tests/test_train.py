@@ -7,6 +7,7 @@ import importlib.util
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from dataclasses import asdict
@@ -416,6 +417,35 @@ def test_variants_trained_side_by_side_equal_their_own_runs(tmp_path):
     assert any(not torch.equal(a, b) for a, b in zip(four0, four1, strict=True))  # seeds differ
     weights, meta = load_weights(tmp_path / "together" / "no_global_skip-s0.safetensors")
     assert meta["step"] == "3" and weights.variant == "no_global_skip"
+
+
+def test_variants_side_by_side_resume_from_their_float16_weights(tmp_path):
+    """``tools/train_ablation.py --resume``: the runs go on from an earlier call's float16
+    exports at their step (a GPU lease brings back only those), log from the next step,
+    and each run's weights start as the file's and then move; files of other steps or
+    of other networks are refused in one line."""
+    spec = importlib.util.spec_from_file_location("train_ablation", ROOT / "tools" / "train_ablation.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    base = TrainConfig(**{**CFG.__dict__, "steps": 3, "val_every": 0, "log_every": 1})
+    configs = [TrainConfig(**{**base.__dict__, "variant": v, "seed": 0}) for v in ("four", "no_global_skip")]
+    tool.train_together(configs, tmp_path / "first", minutes=10, progress=False)
+    longer = [TrainConfig(**{**c.__dict__, "steps": 5}) for c in configs]
+    tool.train_together(longer, tmp_path / "second", minutes=10, progress=False, resume=tmp_path / "first")
+    summary = json.loads((tmp_path / "second" / "summary.json").read_text())
+    assert summary["steps"] == 5 and summary["resumed_from"]["step"] == 3
+    for name in ("four-s0", "no_global_skip-s0"):
+        assert [r["step"] for r in _log(tmp_path / "second" / name)] == ["4", "5"]
+        before, _ = load_weights(tmp_path / "first" / f"{name}.safetensors")
+        after, meta = load_weights(tmp_path / "second" / f"{name}.safetensors")
+        assert meta["step"] == "5"
+        assert any(not torch.equal(a, b) for a, b in zip(before.parameters(), after.parameters(), strict=True))
+    with pytest.raises(SystemExit, match="no such weights file to resume four-s1"):
+        seed1 = [TrainConfig(**{**base.__dict__, "seed": 1})]
+        tool.train_together(seed1, tmp_path / "x", minutes=10, progress=False, resume=tmp_path / "first")
+    shutil.copy(tmp_path / "second" / "four-s0.safetensors", tmp_path / "first" / "four-s0.safetensors")
+    with pytest.raises(SystemExit, match="stopped at different steps"):
+        tool.train_together(longer, tmp_path / "y", minutes=10, progress=False, resume=tmp_path / "first")
 
 
 def test_a_moving_average_of_the_weights_is_kept_exported_and_resumed(tmp_path):

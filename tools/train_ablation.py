@@ -19,6 +19,12 @@ train`` does):
         --seeds 0,1 --batch 32 --lr 2e-4 --workers 6
 
 then score the weights (``tools/nets_unlike.py OUT/*.safetensors``).
+
+``--resume DIR`` goes on from an earlier call's float16 weights (``DIR/VARIANT-sSEED.safetensors``,
+what comes back from a GPU lease, where the checkpoints with Adam's state are too large to
+bring back): every run starts at its weights and their step (all the same step), with a
+fresh Adam, and each seed's batches go on where they stopped (the samples of steps
+``step``, ``step`` + 1, …, as an uninterrupted run draws them). ``OUT`` must be a new folder.
 """
 
 from __future__ import annotations
@@ -62,12 +68,15 @@ def run_name(cfg: TrainConfig) -> str:
 
 
 def train_together(
-    configs: list[TrainConfig], out: Path, minutes: float, progress: bool = True
+    configs: list[TrainConfig], out: Path, minutes: float, progress: bool = True, resume: Path | None = None
 ) -> dict[str, dict[str, float]]:
-    """Train every config from scratch, side by side, until ``minutes`` have passed or each
-    reached its ``steps`` (all have the same); configs of one seed share a batch stream, so
-    they must agree on everything that shapes the data. Returns each run's last validation."""
+    """Train every config from scratch (or from ``resume``'s weights, module doc), side by
+    side, until ``minutes`` have passed or each reached its ``steps`` (all have the same);
+    configs of one seed share a batch stream, so they must agree on everything that shapes
+    the data. Returns each run's last validation."""
     from tqdm import tqdm
+
+    from matscan.weights.format import load_weights
 
     base = configs[0]
     for cfg in configs:
@@ -81,15 +90,29 @@ def train_together(
         torch.backends.cudnn.benchmark = True
     rig = resolve_rig(base.rig)
     runs = {}
+    starts = {}
     for cfg in configs:
         folder = out / run_name(cfg)
         if (folder / CHECKPOINT).exists():
             raise SystemExit(f"train_ablation: {folder} already holds a run; choose another --out")
+        torch.manual_seed(cfg.seed)  # as train() does, so each run starts from train()'s weights
+        nets = build_nets(cfg)
+        if resume is not None:
+            path = resume / f"{run_name(cfg)}.safetensors"
+            if not path.is_file():
+                raise SystemExit(f"train_ablation: {path}: no such weights file to resume {run_name(cfg)} from")
+            loaded, meta = load_weights(path)
+            if loaded.variant != cfg.variant or loaded.state_dict().keys() != nets.state_dict().keys():
+                raise SystemExit(f"train_ablation: {path}: its networks are not those of {run_name(cfg)} here")
+            nets.load_state_dict(loaded.state_dict())
+            starts[run_name(cfg)] = int(meta["step"])
         folder.mkdir(parents=True, exist_ok=True)
         (folder / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
-        torch.manual_seed(cfg.seed)  # as train() does, so each run starts from train()'s weights
-        nets = build_nets(cfg).to(device)
+        nets = nets.to(device)
         runs[run_name(cfg)] = (cfg, folder, nets, torch.optim.Adam(nets.parameters(), lr=cfg.lr))
+    if len(set(starts.values())) > 1:
+        raise SystemExit(f"train_ablation: {resume}: the runs stopped at different steps ({starts})")
+    start = next(iter(starts.values()), 0)
     seeds = sorted({cfg.seed for cfg in configs})
     seed_cfg = {seed: next(c for c in configs if c.seed == seed) for seed in seeds}
     loaders = {}
@@ -97,7 +120,7 @@ def train_together(
         loaders[seed] = iter(
             DataLoader(
                 SvbrdfDataset(data_config(cfg)),
-                batch_sampler=StepSampler(0, cfg.batch),
+                batch_sampler=StepSampler(start, cfg.batch),
                 num_workers=cfg.workers,
                 persistent_workers=cfg.workers > 0,
                 prefetch_factor=cfg.prefetch if cfg.workers > 0 else None,
@@ -108,9 +131,9 @@ def train_together(
     val_samples = fixed_validation_set(base.val_count, base.crop, base.rig) if base.val_every else []
     deadline = time.monotonic() + minutes * 60
     t0 = time.monotonic()
-    step = 0
+    step = start
     last_val: dict[str, dict[str, float]] = {}
-    bar = tqdm(total=base.steps, desc="train", unit="step", disable=not progress, mininterval=10)
+    bar = tqdm(total=base.steps, initial=start, desc="train", unit="step", disable=not progress, mininterval=10)
     while step < base.steps and time.monotonic() < deadline:
         for seed in seeds:
             b = to_device(next(loaders[seed]), device)
@@ -146,8 +169,9 @@ def train_together(
         export_weights(folder / CHECKPOINT, out / f"{name}.safetensors", {"run": str(folder)}, dtype=torch.float16)
     summary = {
         "steps": step,
+        "resumed_from": None if resume is None else {"folder": str(resume), "step": start},
         "seconds": round(seconds, 1),
-        "steps_per_second": round(step / max(seconds, 1e-9), 3),
+        "steps_per_second": round((step - start) / max(seconds, 1e-9), 3),
         "device": str(device) + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""),
         "torch": torch.__version__,
         "runs": {
@@ -178,6 +202,7 @@ def main() -> int:
     parser.add_argument("--log-every", type=int, default=20)
     parser.add_argument("--device", default="auto")
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--resume", type=Path, help="go on from the float16 weights in this folder (module doc)")
     args = parser.parse_args()
     variants = args.variants.split(",")
     for v in variants:
@@ -199,7 +224,7 @@ def main() -> int:
         device=args.device,
     )
     configs = [replace(common, variant=v, seed=int(s)) for s in args.seeds.split(",") for v in variants]
-    last = train_together(configs, args.out, args.minutes, progress=not args.no_progress)
+    last = train_together(configs, args.out, args.minutes, progress=not args.no_progress, resume=args.resume)
     for name, val in last.items():
         print(name, " ".join(f"{k} {v:.4f}" for k, v in val.items()))
     return 0 if all(math.isfinite(v) for val in last.values() for v in val.values()) else 1
