@@ -421,9 +421,9 @@ def test_variants_trained_side_by_side_equal_their_own_runs(tmp_path):
 
 def test_variants_side_by_side_resume_from_their_float16_weights(tmp_path):
     """``tools/train_ablation.py --resume``: the runs go on from an earlier call's float16
-    exports at their step (a GPU lease brings back only those), log from the next step,
-    and each run's weights start as the file's and then move; files of other steps or
-    of other networks are refused in one line."""
+    exports at their step (a GPU lease brings back only those), log from the next step
+    and move their weights; a missing file, or files of different steps, are refused in
+    one line."""
     spec = importlib.util.spec_from_file_location("train_ablation", ROOT / "tools" / "train_ablation.py")
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
