@@ -43,6 +43,9 @@ with its positions and gains (their gradient across the dome and overall factor 
 ``--second-order`` removes instead the bias its second-order formula gives
 (``lightpos.SECOND_ORDER``; with ``--steps=30``). ``--shared-f0`` fits one F0 for every
 dielectric pixel instead of each pixel's own (``lightpos.SHARED_F0``; with ``--steps=20``).
+``--split`` prints under each fitted material the gains' RMS error and the PSNR of maps
+fitted with the fitted positions and the true gains, and with the true positions and the
+fitted gains: which of the two the relighting follows.
 Where the intensities could not be read (too little diffuse reflection: the record's
 ``updated`` is false), reconstruct keeps the rig file's places, and so does the bench
 (marked *).
@@ -66,7 +69,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--second-order] [--shared-f0] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--variants]
+[--pairs=K] [--second-order] [--shared-f0] [--split] [--steps=N] [--side=N] [--seed=S] [--from-truth[=S]] [--variants]
 [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
@@ -402,6 +405,19 @@ def main() -> None:
             lights, g2, _, _ = estimate_positions(cap, g1, cfg)
             both = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
             report(name, lights.position, true, maps, rig, (ideal, plain, gains_only, both))
+            if "--split" in sys.argv:  # which of the two, positions or gains, the relighting follows
+                ratio = (g2 / gains).log()
+                spread = float((ratio - ratio.mean(0, keepdim=True)).square().mean().sqrt()) * 100
+                parts = [with_gains(replace(cap, lights=lights), gains), with_gains(replace(cap, lights=true), g2)]
+                psnr = [
+                    novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm)
+                    for r in map(reconstruct_capture, parts, [cfg] * 2)
+                ]
+                print(
+                    f"{'':16s} gains' RMS error {spread:.2f}% (overall factor removed); PSNR with the fitted positions "
+                    f"and true gains {psnr[0]:.2f}, with the true positions and fitted gains {psnr[1]:.2f}",
+                    flush=True,
+                )
             continue
         if "--full" in sys.argv:
             pos = full_positions(with_gains(cap, g1))

@@ -13,7 +13,14 @@ run: these machines are noisy).
 With ``--mirrors`` each case runs again with ``reconstruct --mirrors`` (the networks'
 maps averaged over the rig's mirrors), and the ratio of the two times is printed.
 
+With ``--self-calibrate`` the sample is photographed by a dome24 whose LEDs are off
+their rig-file places and brightness as in bench/nearcal.py (±5 mm per axis, ±20%
+brightness and ±3% colour with no gradient across the dome; its first draw), the
+capture naming the plain dome24, and each case runs again with ``--self-calibrate``,
+``--self-calibrate-positions`` and ``--shared-f0``, with their ratios to the plain run.
+
 Run by hand: .venv/bin/python bench/reconstruct.py [SIZE ...] [--lights 6,24] [--solver lm|adam] [--mirrors]
+[--self-calibrate]
 (sizes default 256 512 1024; 3072 takes minutes and GBs: ask for it by name).
 """
 
@@ -48,6 +55,42 @@ def run_case(capture: Path, out: Path, solver: str, extra: tuple[str, ...] = ())
     return seconds, usage.ru_maxrss / 2**20
 
 
+def off_rig(path: Path) -> Path:
+    """A dome24 rig file whose LEDs are where and as bright as bench/nearcal.py's first
+    draw puts them, for ``--self-calibrate``."""
+    import dataclasses
+
+    import torch
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from selfcal import led_gains
+
+    from matscan.rig import builtin_rig, save_rig
+
+    rig = builtin_rig("dome24")
+    gains = led_gains(100)
+    delta = (torch.rand(24, 3, generator=torch.Generator().manual_seed(200)) * 2 - 1) * 5
+    lights = tuple(
+        dataclasses.replace(
+            light,
+            position_mm=tuple(float(v) for v in torch.tensor(light.position_mm) + delta[k]),
+            intensity=tuple(float(v) for v in gains[k]),
+        )
+        for k, light in enumerate(rig.lights)
+    )
+    save_rig(dataclasses.replace(rig, name="dome24-off", lights=lights), path)
+    return path
+
+
+def named_dome24(capture: Path) -> None:
+    """The capture's rig set to the plain dome24 (the one it would name: the rig file)."""
+    import json
+
+    meta = json.loads((capture / "capture.json").read_text())
+    meta["rig"] = "dome24"
+    (capture / "capture.json").write_text(json.dumps(meta, indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("sizes", nargs="*", type=int, default=[256, 512, 1024])
@@ -56,17 +99,26 @@ def main() -> None:
     parser.add_argument(
         "--mirrors", action="store_true", help="each case also with reconstruct --mirrors, and the ratio of the two"
     )
+    parser.add_argument(
+        "--self-calibrate",
+        dest="self_calibrate",
+        action="store_true",
+        help="LEDs off their rig-file places; each case also with the three self-calibrations",
+    )
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+        rig = ["--rig", str(off_rig(Path(tmp) / "off.json"))] if args.self_calibrate else []
         for size in args.sizes:
             for lights in args.lights.split(","):
                 cap = Path(tmp) / f"cap{size}_{lights}"
                 subprocess.run(
-                    matscan("simulate", "@sample", "--out", str(cap), "--size", str(size), "--lights", lights),
+                    matscan("simulate", "@sample", "--out", str(cap), "--size", str(size), "--lights", lights, *rig),
                     check=True,
                     capture_output=True,
                 )
+                if args.self_calibrate:
+                    named_dome24(cap)
                 seconds, peak = run_case(cap, Path(tmp) / f"out{size}_{lights}", args.solver)
                 work = size * size * int(lights) / 1e6
                 rows.append((size, int(lights), seconds, peak, seconds / work))
@@ -78,6 +130,14 @@ def main() -> None:
                         f"{more / seconds:.2f} × the time",
                         flush=True,
                     )
+                if args.self_calibrate:
+                    for flag in ("--self-calibrate", "--self-calibrate-positions", "--shared-f0"):
+                        more, peak = run_case(cap, Path(tmp) / f"{flag[2:]}{size}_{lights}", args.solver, (flag,))
+                        print(
+                            f"{'':>7} {'':>3} with {flag}: {more:7.1f} s wall, peak RSS {peak:5.2f} GiB, "
+                            f"{more / seconds:.2f} × the time",
+                            flush=True,
+                        )
     base = rows[0][4]
     print(f"\nsolver {args.solver}; seconds per million pixel-lights, relative to {rows[0][0]}² × {rows[0][1]}:")
     for size, lights, _, _, per in rows:

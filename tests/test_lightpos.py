@@ -271,4 +271,30 @@ def test_the_cli_flag_implies_the_intensities(tmp_path):
     )
     record = json.loads((tmp_path / "out" / "matscan.json").read_text())
     assert record["config"]["self_calibrate"] is True and record["config"]["self_calibrate_positions"] is True
-    assert record["self_calibration"]["positions"]["near_lights"] == 24
+    positions = record["self_calibration"]["positions"]
+    assert positions["near_lights"] == 24
+    assert record["config"]["shared_f0"] is False and "shared_f0" not in positions and positions["iterations"] == 10
+
+
+def test_shared_f0_needs_the_positions_fit():
+    with pytest.raises(MatscanError, match="shared_f0: needs self_calibrate_positions"):
+        ReconstructConfig(self_calibrate=True, shared_f0=True)
+
+
+def test_the_shared_f0_flag_fits_the_positions_with_one_f0(tmp_path):
+    """``reconstruct --shared-f0`` implies the positions' fit, which then runs its 20 steps
+    with one F0 for the paper's dielectric pixels, a dielectric's (the paper's is 0.037;
+    0.028-0.031 when written, from these 32² photos with the camera's noise)."""
+    from matscan.cli import main
+
+    maps = generate("paper", 32, 1)
+    photos = _photos(maps, _offsets(), _gains(), noise=0.002)
+    write_capture(tmp_path / "cap", photos, RIG, light_indices=list(range(24)), encoding="srgb", bits=16)
+    main(["reconstruct", str(tmp_path / "cap"), "--out", str(tmp_path / "out"), "--model", "none", "--shared-f0"])
+    record = json.loads((tmp_path / "out" / "matscan.json").read_text())
+    assert record["config"]["self_calibrate_positions"] is True and record["config"]["shared_f0"] is True
+    positions = record["self_calibration"]["positions"]
+    assert positions["iterations"] == 20
+    shared = positions["shared_f0"]
+    assert shared["share"] > 0.9, shared
+    assert all(0.02 <= v <= 0.06 for v in shared["value"]), shared

@@ -76,6 +76,9 @@ class ReconstructConfig:
     validate: int = 0  # leave this many photos out, reconstruct, and report their re-rendering error
     self_calibrate: bool = False  # estimate each light's RGB intensity with the maps (selfcal)
     self_calibrate_positions: bool = False  # and the near lights' positions (lightpos); needs self_calibrate
+    # in that fit, one F0 for the dielectric pixels (lightpos.SHARED_F0's alternative, off by
+    # default: docs/rti.md); needs self_calibrate_positions
+    shared_f0: bool = False
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
 
@@ -101,6 +104,8 @@ class ReconstructConfig:
             raise MatscanError(
                 "self_calibrate_positions: needs self_calibrate (the positions are fitted with the gains)"
             )
+        if self.shared_f0 and not self.self_calibrate_positions:
+            raise MatscanError("shared_f0: needs self_calibrate_positions (it is a setting of the positions' fit)")
 
 
 #: ``--refine auto`` refines captures with at least this many photos, per solver. With the
@@ -363,7 +368,7 @@ def reconstruct_capture(
         seconds = time.perf_counter() - t0
         result = reconstruct_capture(
             with_gains(capture, gains),
-            replace(cfg, self_calibrate=False, self_calibrate_positions=False),
+            replace(cfg, self_calibrate=False, self_calibrate_positions=False, shared_f0=False),
             nets,
             progress,
             anyrig,

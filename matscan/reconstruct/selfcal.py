@@ -138,7 +138,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     factor = max(1, math.ceil(max(h, w) / ROUND_SIDE))
     small = reduced(capture, factor)
     lm = replace(cfg.lm, prior_roughness=cfg.lm.prior_roughness * ROUGHNESS_HOLD)
-    off = {"self_calibrate": False, "self_calibrate_positions": False}
+    off = {"self_calibrate": False, "self_calibrate_positions": False, "shared_f0": False}
     fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, lm=lm, **off)
     gains = torch.ones(n, 3)
     history = []
