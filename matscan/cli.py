@@ -803,7 +803,7 @@ def build_parser() -> argparse.ArgumentParser:
         dest="shared_f0",
         action="store_true",
         help="--self-calibrate-positions with one F0 for the sample's dielectric pixels in that fit: on simulated "
-        "domes nearer the ideal dome's relighting for most materials (paper, grass, weaves: up to 2 dB), 0.2 dB "
+        "domes nearer the ideal dome's relighting for most materials (paper, grass, gravel: up to 2.3 dB), 0.2 dB "
         "worse for a foil print on paper; several times the positions' time (docs/rti.md)",
     )
     p.add_argument(
