@@ -48,7 +48,8 @@ LED's direction from the centre (A = 0.1: about ±9% from one side of the dome t
 other), a gradient the self-calibration takes as none (a tilted sample looks alike).
 ``--split`` prints under each fitted material the gains' RMS error and the PSNR of maps
 fitted with the fitted positions and the true gains, and with the true positions and the
-fitted gains: which of the two the relighting follows.
+fitted gains (which of the two the relighting follows), and the mean slope of the fitted
+maps' normals (how far the fit tilted the sample as a whole).
 Where the intensities could not be read (too little diffuse reflection: the record's
 ``updated`` is false), reconstruct keeps the rig file's places, and so does the bench
 (marked *).
@@ -301,6 +302,13 @@ def variants(name: str, cap: Capture, g1: torch.Tensor, cfg, maps: MapSet, true:
     print(f"{name:16s} " + "  |  ".join(scores), flush=True)
 
 
+def mean_slope(maps: MapSet) -> tuple[float, float]:
+    """The mean of the normals' slopes (n_x / n_z, n_y / n_z) over the image: how far a
+    fit tilted the sample as a whole."""
+    n = maps.normal.reshape(3, -1)
+    return float((n[0] / n[2]).mean()), float((n[1] / n[2]).mean())
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -425,6 +433,14 @@ def main() -> None:
                 print(
                     f"{'':16s} gains' RMS error {spread:.2f}% (overall factor removed); PSNR with the fitted positions "
                     f"and true gains {psnr[0]:.2f}, with the true positions and fitted gains {psnr[1]:.2f}",
+                    flush=True,
+                )
+                tilts = " and ".join(
+                    f"({mean_slope(r.maps)[0]:+.4f}, {mean_slope(r.maps)[1]:+.4f})" for r in (gains_only, both)
+                )
+                print(
+                    f"{'':16s} the maps' mean normal slope (x, y) with the intensities {tilts} with the positions too; "
+                    f"true ({mean_slope(maps)[0]:+.4f}, {mean_slope(maps)[1]:+.4f})",
                     flush=True,
                 )
             continue
