@@ -211,7 +211,14 @@ def _double(lights: LightSet) -> LightSet:
 
 def _render(th: Tensor, lights: LightSet, pts: Tensor) -> Tensor:
     """The model (N, 3, P) of pixels with numbers ``th`` (9, P) under ``lights``."""
-    a, s1, s0 = lm.bases(th[6:9], lm.geometry(lights, pts))
+    return _model(th, lm.geometry(lights, pts))
+
+
+def _model(th: Tensor, geo: lm.Geometry) -> Tensor:
+    """The model (N, 3, P) of pixels with numbers ``th`` (9, P) in the lights' geometry
+    ``geo`` (:func:`matscan.reconstruct.lm.geometry`), computed once where many ``th``
+    are tried under the same lights."""
+    a, s1, s0 = lm.bases(th[6:9], geo)
     return th[None, 0:3] * a + th[None, 3:6] * s1 + s0
 
 
@@ -219,7 +226,8 @@ def _jacobians(th: Tensor, lights: LightSet, aims: Tensor, gains: Tensor, pts: T
     """The model m (N, 3, P) and its derivatives by each pixel's 9 numbers (N, 3, P, 9)
     and by each light's position (N, 3, P, 3); by the log gains it is m itself."""
     base = _placed(lights, aims, lights.position, gains)
-    a, s1, s0 = lm.bases(th[6:9], lm.geometry(base, pts))
+    geo = lm.geometry(base, pts)
+    a, s1, s0 = lm.bases(th[6:9], geo)
     m = th[None, 0:3] * a + th[None, 3:6] * s1 + s0
     n, p = m.shape[0], m.shape[2]
     jp = torch.zeros(n, 3, p, 9, dtype=F64)
@@ -230,7 +238,7 @@ def _jacobians(th: Tensor, lights: LightSet, aims: Tensor, gains: Tensor, pts: T
         hi, lo = th.clone(), th.clone()
         hi[6 + j] += 1e-6
         lo[6 + j] -= 1e-6
-        jp[..., 6 + j] = (_render(hi, base, pts) - _render(lo, base, pts)) / 2e-6
+        jp[..., 6 + j] = (_model(hi, geo) - _model(lo, geo)) / 2e-6
     jl = torch.zeros(n, 3, p, 3, dtype=F64)
     for j in range(3):
         d = torch.zeros(n, 3, dtype=F64)
@@ -397,15 +405,15 @@ def _with_shared_f0(a: Tensor, gp: Tensor, b: Tensor, c: Tensor, gl: Tensor, sha
     return a, gp, torch.cat([b, bf], 2), c, torch.cat([gl, glf])
 
 
-def _reseeded(th: Tensor, misfit, lights: LightSet, pts: Tensor, y: Tensor, wt: Tensor) -> Tensor:
+def _reseeded(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor) -> Tensor:
     """``th`` (9, P) with each pixel's roughness at the value of ``_RESEED_GRID`` whose
     fit (ρ by weighted least squares, F0 and normal kept) lowers the pixel's ``misfit``
-    (a function of th giving (P,)) most, where one does."""
+    (a function of th giving (P,), under the lights of ``geo``) most, where one does."""
     best, th = misfit(th), th.clone()
     for r in _RESEED_GRID:
         t = th.clone()
         t[6] = r
-        a, s1, s0 = lm.bases(t[6:9], lm.geometry(lights, pts))
+        a, s1, s0 = lm.bases(t[6:9], geo)
         rest = y - t[None, 3:6] * s1 - s0
         t[0:3] = ((wt * a * rest).sum(0) / (wt * a * a).sum(0).clamp_min(1e-12)).clamp(-1, 2)
         tried = misfit(t)
@@ -419,14 +427,16 @@ def _shared_start(th: Tensor, shared: Tensor, lights: LightSet, pts: Tensor, y: 
     each pixel's roughness searched again (:func:`_reseeded`), fits the photos best
     (Cauchy's loss, as the steps weigh them), and that value."""
 
+    geo = lm.geometry(lights, pts)
+
     def misfit(t: Tensor) -> Tensor:
-        return (ROBUST**2 * torch.log1p(wt * (y - _render(t, lights, pts)) ** 2 / ROBUST**2)).sum((0, 1))
+        return (ROBUST**2 * torch.log1p(wt * (y - _model(t, geo)) ** 2 / ROBUST**2)).sum((0, 1))
 
     best = None
     for f in _F0_GRID:
         t = th.clone()
         t[3:6, shared] = f
-        t = _reseeded(t, misfit, lights, pts, y, wt)
+        t = _reseeded(t, misfit, geo, y, wt)
         cost = float(misfit(t).sum())
         if best is None or cost < best[0]:
             best = (cost, float(f), t)
@@ -476,25 +486,29 @@ def _solve(
         half = iterations // 2
         reseeds = {half, half + 3, half + 6} if iterations >= 8 else set()
 
-    def residual2(th: Tensor, pos: Tensor, lg: Tensor) -> Tensor:
+    def geometry(pos: Tensor, lg: Tensor) -> lm.Geometry:
+        """The geometry of the lights at ``pos`` with log gains ``lg``."""
+        return lm.geometry(_placed(lights, aims, pos, lg.exp()), pts)
+
+    def residual2(th: Tensor, geo: lm.Geometry) -> Tensor:
         """Squared residuals in units of the noise (N, 3, P)."""
-        return wt * (y - _render(th, _placed(lights, aims, pos, lg.exp()), pts)) ** 2
+        return wt * (y - _model(th, geo)) ** 2
 
     start, hold = th.clone(), (_SPREAD**-2 if held else torch.zeros(9, dtype=F64))[:, None]
 
-    def pixel_misfit(th: Tensor, pos: Tensor, lg: Tensor) -> Tensor:
+    def pixel_misfit(th: Tensor, geo: lm.Geometry) -> Tensor:
         prior = (hold * (th - start) ** 2).sum(0)
-        return (ROBUST**2 * torch.log1p(residual2(th, pos, lg) / ROBUST**2)).sum((0, 1)) + prior
+        return (ROBUST**2 * torch.log1p(residual2(th, geo) / ROBUST**2)).sum((0, 1)) + prior
 
-    cost = float(pixel_misfit(th, pos, lg).sum())
+    cost = float(pixel_misfit(th, geometry(pos, lg)).sum())
     first, mu = cost, 1e-3
     for it in range(iterations):
+        at = geometry(pos, lg)
         if extra and it in reseeds:
-            at = _placed(lights, aims, pos, lg.exp())
-            th = _reseeded(th, lambda t, pos=pos, lg=lg: pixel_misfit(t, pos, lg), at, pts, y, wt)
-            cost = float(pixel_misfit(th, pos, lg).sum())
+            th = _reseeded(th, lambda t, at=at: pixel_misfit(t, at), at, y, wt)
+            cost = float(pixel_misfit(th, at).sum())
         placed = replace(lights, position=pos)
-        irls = wt / (1 + residual2(th, pos, lg) / ROBUST**2)  # Cauchy's weights, reweighted each step
+        irls = wt / (1 + residual2(th, at) / ROBUST**2)  # Cauchy's weights, reweighted each step
         a, gp, b, c, gl = normal_equations(th, placed, aims, lg.exp(), pts, irls, y)
         a, gp = a + torch.diag(hold[:, 0]), gp - (hold * (th - start)).T
         if extra:
@@ -511,7 +525,8 @@ def _solve(
                 base[3:6, shared] += dl[6 * n :, None]
                 base = torch.max(torch.min(base, _HIGH), _LOW)
             th_t = torch.max(torch.min(base + dp.T, _HIGH), _LOW)
-            moved, kept = pixel_misfit(th_t, pos_t, lg_t), pixel_misfit(base, pos_t, lg_t)
+            at_t = geometry(pos_t, lg_t)
+            moved, kept = pixel_misfit(th_t, at_t), pixel_misfit(base, at_t)
             better = moved <= kept
             th_t = torch.where(better[None], th_t, base)
             cost_t = float(torch.where(better, moved, kept).sum())
