@@ -45,7 +45,10 @@ with its positions and gains (their gradient across the dome and overall factor 
 dielectric pixel instead of each pixel's own (``lightpos.SHARED_F0``; with ``--steps=20``).
 ``--gradient=A`` multiplies the LEDs' brightness by exp(A · x), x the x component of each
 LED's direction from the centre (A = 0.1: about ±9% from one side of the dome to the
-other), a gradient the self-calibration takes as none (a tilted sample looks alike).
+other), a gradient the self-calibration takes as none (a tilted sample looks alike);
+``--drawn-gradient`` keeps the gradient each draw of ±20% LEDs has (median 0.057),
+which the bench's draws otherwise remove. ``--level`` fits under the other convention,
+the sample level and the gradient in the gains (``selfcal.LEVEL``).
 ``--split`` prints under each fitted material the gains' RMS error and the PSNR of maps
 fitted with the fitted positions and the true gains, and with the true positions and the
 fitted gains (which of the two the relighting follows), and the mean slope of the fitted
@@ -73,7 +76,8 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--steps=N] [--side=N] [--seed=S]
+[--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--level]
+[--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
@@ -94,6 +98,7 @@ from matscan.materials.artist import artist_material
 from matscan.materials.photos import photo_material
 from matscan.materials.procedural import generate
 from matscan.reconstruct import ReconstructConfig, lightpos, lm, reconstruct_capture
+from matscan.reconstruct import selfcal as estimator
 from matscan.reconstruct.lightpos import estimate_positions, fit_positions
 from matscan.reconstruct.lm import SolverConfig
 from matscan.reconstruct.selfcal import DIFFUSE_SHARE, LIT, estimate_gains, with_gains
@@ -274,8 +279,6 @@ def variants(name: str, cap: Capture, g1: torch.Tensor, cfg, maps: MapSet, true:
     ``BIAS_PAIRS`` does), to the positions alone and to the gains alone: positions' mean
     error (mm), the gains' RMS error (%, their overall factor and tilt removed) and the
     novel-light PSNR (dB)."""
-    from matscan.reconstruct.selfcal import without_tilt
-
     debiased, got = lightpos._debiased, {}
 
     def spy(photos, fit, pairs, iterations, progress=None):
@@ -292,7 +295,7 @@ def variants(name: str, cap: Capture, g1: torch.Tensor, cfg, maps: MapSet, true:
     scores = []
     for pos, lg in ((fit.pos, fit.lg), (got["pos"], got["lg"]), (got["pos"], fit.lg), (fit.pos, got["lg"])):
         lights = lightpos._lit_from(cap, pos.float()).lights
-        g = without_tilt(lg.exp().float(), cap.lights)
+        g = estimator.gauged(lg.exp().float(), cap.lights)
         res = reconstruct_capture(with_gains(replace(cap, lights=lights), g), cfg)
         off = (g / gains).log()
         off = off - off.mean(0)
@@ -341,6 +344,8 @@ def main() -> None:
             lightpos.SECOND_ORDER = True
         if a == "--shared-f0":  # one F0 for the dielectric pixels in the joint fit (lightpos.SHARED_F0)
             lightpos.SHARED_F0 = True
+        if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
+            estimator.LEVEL = True
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
     draw = next((1000 * int(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--seed=")), 0)
@@ -383,7 +388,7 @@ def main() -> None:
             continue
         if matte:
             maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
-        gains = led_gains(100 + i + draw)
+        gains = led_gains(100 + i + draw, gradient="--drawn-gradient" in sys.argv)
         if gradient:  # brighter toward +x across the dome, which the self-calibration takes as none
             gains = gains * torch.exp(gradient * nominal.position[:, :1] / nominal.position.norm(dim=1, keepdim=True))
         delta = (torch.rand(24, 3, generator=torch.Generator().manual_seed(200 + i + draw)) * 2 - 1) * 5

@@ -106,7 +106,7 @@ from tqdm import tqdm
 
 from matscan.capture.folder import Capture
 from matscan.mapset import MapSet
-from matscan.reconstruct import lm
+from matscan.reconstruct import lm, selfcal
 from matscan.render import surface_points
 from matscan.rig import LightSet
 
@@ -331,9 +331,10 @@ def _noise_weights(y: Tensor, m: Tensor, valid: Tensor) -> tuple[Tensor, tuple[f
     return valid / (a * y.clamp_min(0) + b), (a, b)
 
 
-def _free_directions(lights: LightSet, near: Tensor) -> Tensor:
+def _free_directions(lights: LightSet, near: Tensor, gradient: bool = False) -> Tensor:
     """An orthonormal basis (6N, D) of the steps allowed over (positions, log gains): no
-    position step for directional lights, no gradient of the log gains across the dome."""
+    position step for directional lights, and unless ``gradient``, no gradient of the log
+    gains across the dome."""
     n = len(near)
     d = lights.position / lights.position.norm(dim=1, keepdim=True)
     fixed = []
@@ -343,11 +344,13 @@ def _free_directions(lights: LightSet, near: Tensor) -> Tensor:
                 e = torch.zeros(6 * n, dtype=F64)
                 e[3 * i + j] = 1
                 fixed.append(e)
-    for j in range(2):
+    for j in range(0 if gradient else 2):
         for c in range(3):
             g = torch.zeros(n, 3, dtype=F64)
             g[:, c] = d[:, j]
             fixed.append(torch.cat([torch.zeros(3 * n, dtype=F64), g.reshape(-1)]))
+    if not fixed:
+        return torch.eye(6 * n, dtype=F64)
     q = torch.linalg.qr(torch.stack(fixed, 1))[0]
     u, s, _ = torch.linalg.svd(torch.eye(6 * n, dtype=F64) - q @ q.T)
     return u[:, : 6 * n - q.shape[1]]
@@ -403,6 +406,18 @@ def _with_shared_f0(a: Tensor, gp: Tensor, b: Tensor, c: Tensor, gl: Tensor, sha
     bf[shared, 3:6, :] = 0
     c = torch.cat([torch.cat([c, clf], 1), torch.cat([clf.T, cff], 1)], 0)
     return a, gp, torch.cat([b, bf], 2), c, torch.cat([gl, glf])
+
+
+def _with_level(b: Tensor, c: Tensor, gl: Tensor, th: Tensor):
+    """The normal equations (:func:`normal_equations`) with the step held to bring the
+    pixels' mean slope (x and y) to none: two Lagrange multipliers appended to the lights'
+    numbers, coupled to every pixel's two slopes, with no block of their own, and whose
+    right side is minus the slopes' present sum (``selfcal.LEVEL``)."""
+    e = torch.zeros(b.shape[0], 9, 2, dtype=F64)
+    e[:, 7, 0] = 1
+    e[:, 8, 1] = 1
+    c = torch.block_diag(c, torch.zeros(2, 2, dtype=F64))
+    return torch.cat([b, e], 2), c, torch.cat([gl, -th[7:9].sum(1)])
 
 
 def _reseeded(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor) -> Tensor:
@@ -470,7 +485,8 @@ def _solve(
     per_pixel = (wt * (y - m0) ** 2).sum((0, 1)) / valid.sum((0, 1)).clamp_min(1)
     used = per_pixel <= OUTLIER * per_pixel.median()
     th, y, valid, wt, pts = th[:, used], y[..., used], valid[..., used], wt[..., used], pts[used]
-    basis = _free_directions(lights, photos.near)
+    level = selfcal.LEVEL
+    basis = _free_directions(lights, photos.near, gradient=level)
     shared = (th[3:6] < SHARED_BELOW).all(0) if shared_f0 else torch.zeros(th.shape[1], dtype=torch.bool)
     if shared.any():
         scan = scan or _shared_start(th, shared, _placed(lights, aims, pos, lg.exp()), pts, y, wt)
@@ -485,6 +501,8 @@ def _solve(
         basis = torch.block_diag(basis, torch.eye(extra, dtype=F64))
         half = iterations // 2
         reseeds = {half, half + 3, half + 6} if iterations >= 8 else set()
+    if level:
+        basis = torch.block_diag(basis, torch.eye(2, dtype=F64))
 
     def geometry(pos: Tensor, lg: Tensor) -> lm.Geometry:
         """The geometry of the lights at ``pos`` with log gains ``lg``."""
@@ -513,6 +531,8 @@ def _solve(
         a, gp = a + torch.diag(hold[:, 0]), gp - (hold * (th - start)).T
         if extra:
             a, gp, b, c, gl = _with_shared_f0(a, gp, b, c, gl, shared)
+        if level:
+            b, c, gl = _with_level(b, c, gl, th)
         for _ in range(8):
             ad, s, rhs = reduced_system(a, gp, b, c, gl, mu)
             dl = basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs)
@@ -522,7 +542,7 @@ def _solve(
             base = th
             if extra:  # the shared F0's step, for every pixel that shares it
                 base = th.clone()
-                base[3:6, shared] += dl[6 * n :, None]
+                base[3:6, shared] += dl[6 * n : 6 * n + 3, None]
                 base = torch.max(torch.min(base, _HIGH), _LOW)
             th_t = torch.max(torch.min(base + dp.T, _HIGH), _LOW)
             at_t = geometry(pos_t, lg_t)
@@ -746,7 +766,7 @@ def estimate_positions(
     photo's geometry (a flash rig: measured on domes only), the lights are returned as
     None and the gains unchanged."""
     from matscan.reconstruct.job import reconstruct_capture
-    from matscan.reconstruct.selfcal import reduced, with_gains, without_tilt
+    from matscan.reconstruct.selfcal import gauged, reduced, with_gains
 
     near = capture.lights.w > 0.5
     if not bool(near.any()):
@@ -792,4 +812,4 @@ def estimate_positions(
             f"place (more than {MOVED_WARN_MM:.0f} mm): check the rig file, or measure the positions with "
             "`matscan calibrate --grey --positions` or `matscan rig from-spheres`"
         )
-    return lights, without_tilt(fitted, capture.lights), record, notes
+    return lights, gauged(fitted, capture.lights), record, notes

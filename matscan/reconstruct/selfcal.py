@@ -97,6 +97,12 @@ ROUGHNESS_HOLD = 0.01
 ROUNDS = 3
 #: The capture is reduced to at most this many pixels on its longer side for the rounds.
 ROUND_SIDE = 128
+#: What fixes the gains' gradient across the dome, which a tilted sample photographs
+#: like (:func:`gauged`): False, the gains have none (:func:`without_tilt`); True, the
+#: sample lies level, its normals' mean slope none, and the gains keep the gradient the
+#: photos show (each round reads the ratios against the fitted maps levelled,
+#: :func:`levelled`).
+LEVEL = False
 
 
 def reduced(capture: Capture, factor: int) -> Capture:
@@ -150,10 +156,11 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
         res = reconstruct_capture(cap, fit_cfg, None)
         if not history:
             history.append(rerender_error(res.maps, cap, list(range(n)), res.intensity_scale))
-        matte = MapSet(**{**res.maps.present(), "specular": torch.zeros_like(res.maps.specular)})
+        shown = levelled(res.maps) if LEVEL else res.maps
+        matte = MapSet(**{**shown.present(), "specular": torch.zeros_like(shown.specular)})
         for i in range(n):
             with torch.no_grad():
-                pred = render_maps(res.maps, cap.lights.select([i]), cap.field_mm, res.intensity_scale)[0]
+                pred = render_maps(shown, cap.lights.select([i]), cap.field_mm, res.intensity_scale)[0]
                 diffuse = render_maps(matte, cap.lights.select([i]), cap.field_mm, res.intensity_scale)[0]
             photo = cap.linear([i])[0]
             use = (~cap.saturation([i])[0]).expand_as(pred) & (pred > LIT) & (diffuse > DIFFUSE_SHARE * pred)
@@ -167,7 +174,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
             update = torch.ones(n, 3)
         else:
             updated = True
-        gains = without_tilt(gains * update.clamp(0.2, 5.0), small.lights)
+        gains = gauged(gains * update.clamp(0.2, 5.0), small.lights)
     history.append(_fit_error(small, gains, fit_cfg))
     worse = updated and history[-1] >= history[0]
     if worse:  # the estimate explains the photos no better than the capture's own intensities
@@ -183,6 +190,28 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     if worse:
         record["rejected"] = "the estimated intensities re-render the photos no better than the capture's own"
     return gains, record
+
+
+def gauged(gains: Tensor, lights: LightSet) -> Tensor:
+    """Gains (N, 3) under the convention ``LEVEL`` sets: divided by their geometric mean
+    per channel, and with ``LEVEL`` off their gradient across the dome removed too
+    (:func:`without_tilt`)."""
+    if not LEVEL:
+        return without_tilt(gains, lights)
+    log = gains.log().double()
+    return (log - log.mean(dim=0, keepdim=True)).exp().float()
+
+
+def levelled(maps: MapSet) -> MapSet:
+    """The maps with the mean of their normals' slopes (n_x / n_z, n_y / n_z) over the
+    image subtracted from every pixel's: the relief kept, the sample laid level (a
+    heightfield sheared by its mean gradient)."""
+    n = maps.normal
+    nz = n[2:3].clamp_min(0.2)
+    slope = n[0:2] / nz
+    slope = slope - slope.mean(dim=(1, 2), keepdim=True)
+    n = torch.cat([slope, torch.ones_like(nz)])
+    return MapSet(**{**maps.present(), "normal": n / n.norm(dim=0, keepdim=True)})
 
 
 def without_tilt(gains: Tensor, lights: LightSet) -> Tensor:
