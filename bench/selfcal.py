@@ -52,10 +52,14 @@ from matscan.rig import builtin_rig
 
 def led_gains(seed: int, gradient: bool = False) -> torch.Tensor:
     """±20% brightness, ±3% colour, with no gradient across the dome (without_tilt), or
-    with the one the draw has (``gradient``)."""
+    with the one the draw has (``gradient``); either way divided by their geometric mean
+    per channel, the overall factor that no self-calibration can read (the albedo takes
+    it), which would otherwise count against every estimate's relighting."""
     g = torch.Generator().manual_seed(seed)
     gains = (0.8 + 0.4 * torch.rand(24, 1, generator=g)) * (0.97 + 0.06 * torch.rand(24, 3, generator=g))
-    return gains if gradient else without_tilt(gains, builtin_rig("dome24").light_set())
+    if gradient:
+        return gains / gains.log().mean(0).exp()
+    return without_tilt(gains, builtin_rig("dome24").light_set())
 
 
 def dome_capture(maps, gains: torch.Tensor, seed: int) -> Capture:

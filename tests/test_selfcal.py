@@ -50,6 +50,50 @@ def test_without_tilt_removes_a_gradient_and_the_mean_exactly():
     assert torch.allclose(gains.log().mean(0), torch.zeros(3), atol=1e-6)
 
 
+def test_levelled_removes_a_tilt_and_keeps_the_relief():
+    """Normals of a relief whose slopes average to none over the image (two whole
+    periods of a cosine along each axis) on a plane of slope (0.15, -0.08): levelled,
+    they are the relief's own normals."""
+    h, w = 32, 48
+    col = torch.cos(2 * math.pi * 2 * (torch.arange(w) + 0.5) / w)
+    row = torch.cos(2 * math.pi * 2 * (torch.arange(h) + 0.5) / h)
+    relief = torch.stack([0.4 * col.expand(h, w), -0.3 * row[:, None].expand(h, w)])
+
+    def normals(slopes):
+        n = torch.cat([slopes, torch.ones(1, h, w)])
+        return n / n.norm(dim=0, keepdim=True)
+
+    tilted = relief + torch.tensor([0.15, -0.08])[:, None, None]
+    maps = MapSet(
+        diffuse=torch.full((3, h, w), 0.5),
+        specular=torch.full((1, h, w), 0.04),
+        roughness=torch.full((1, h, w), 0.5),
+        normal=normals(tilted),
+    )
+    torch.testing.assert_close(selfcal.levelled(maps).normal, normals(relief), atol=1e-5, rtol=0)
+    torch.testing.assert_close(selfcal.levelled(maps).diffuse, maps.diffuse)
+
+
+def test_a_level_sample_gives_a_brightness_gradient_back(monkeypatch):
+    """A matte paper photographed exactly under LEDs ±20% in brightness and brighter
+    toward +x (exp(0.08 x), x each LED direction's component: ±7% across the dome). Under
+    the convention that the sample lies level (``LEVEL``) the gains come back within 1%
+    with their gradient; under the convention that the dome has none, the gradient is
+    lost and the gains are more than 3% off."""
+    maps = generate("paper", 96, 1)
+    maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
+    d = RIG.light_set().position / RIG.light_set().position.norm(dim=1, keepdim=True)
+    gains = _gains() * torch.exp(0.08 * d[:, :1])
+    gains = gains / gains.log().mean(0).exp()  # the convention's overall factor
+    cap, cfg = _exact_capture(maps, gains), ReconstructConfig(model="none", refine="on")
+    monkeypatch.setattr(selfcal, "LEVEL", True)
+    level, _ = estimate_gains(cap, cfg)
+    assert float((level / gains - 1).abs().max()) < 0.01
+    monkeypatch.setattr(selfcal, "LEVEL", False)
+    flat, _ = estimate_gains(cap, cfg)
+    assert float((flat / gains - 1).abs().max()) > 0.03
+
+
 @pytest.mark.parametrize("family", ["paper", "plastic"])
 def test_recovers_led_gains_within_two_percent(tmp_path, family):
     maps = generate(family, 96, 1)
