@@ -295,7 +295,7 @@ def variants(name: str, cap: Capture, g1: torch.Tensor, cfg, maps: MapSet, true:
     scores = []
     for pos, lg in ((fit.pos, fit.lg), (got["pos"], got["lg"]), (got["pos"], fit.lg), (fit.pos, got["lg"])):
         lights = lightpos._lit_from(cap, pos.float()).lights
-        g = estimator.gauged(lg.exp().float(), cap.lights)
+        g = estimator.gauged(lg.exp().float(), cap.lights, estimator.LEVEL)
         res = reconstruct_capture(with_gains(replace(cap, lights=lights), g), cfg)
         off = (g / gains).log()
         off = off - off.mean(0)

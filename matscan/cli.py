@@ -153,9 +153,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         exr=args.exr,
         directx_normals=args.directx_normals,
         validate=args.validate,
-        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0,
+        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0 or args.level,
         self_calibrate_positions=args.self_calibrate_positions or args.shared_f0,
         shared_f0=args.shared_f0,
+        self_calibrate_gradient=args.level,
     )
     rec = reconstruct(
         _capture_arg(args.capture),
@@ -556,9 +557,10 @@ def cmd_batch(args: argparse.Namespace) -> str:
         refine=args.refine,
         solver=args.solver,
         validate=args.validate,
-        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0,
+        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0 or args.level,
         self_calibrate_positions=args.self_calibrate_positions or args.shared_f0,
         shared_f0=args.shared_f0,
+        self_calibrate_gradient=args.level,
         exr=args.exr,
         mirrors=args.mirrors,
     )
@@ -805,6 +807,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="--self-calibrate-positions with one F0 for the sample's dielectric pixels in that fit: on simulated "
         "domes nearer the ideal dome's relighting for most materials (paper, grass, gravel: up to 2.3 dB), 0.2 dB "
         "worse for a foil print on paper; several times the positions' time (docs/rti.md)",
+    )
+    p.add_argument(
+        "--self-calibrate-gradient",
+        dest="level",
+        action="store_true",
+        help="--self-calibrate taking the sample as lying level and letting the LEDs' brightness vary from one "
+        "side of the dome to the other (the default takes the dome as without such a gradient, which a tilted "
+        "sample photographs like): for a dome whose LEDs were never calibrated (docs/rti.md)",
     )
     p.add_argument(
         "--validate",
@@ -1150,6 +1160,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--self-calibrate-positions", dest="self_calibrate_positions", action="store_true", help="as for reconstruct"
     )
     p.add_argument("--shared-f0", dest="shared_f0", action="store_true", help="as for reconstruct")
+    p.add_argument("--self-calibrate-gradient", dest="level", action="store_true", help="as for reconstruct")
     p.add_argument("--exr", action="store_true", help="also write every map as float EXR")
     p.add_argument("--mirrors", action="store_true", help="as for reconstruct")
     p.set_defaults(func=cmd_batch)

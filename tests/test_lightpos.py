@@ -115,15 +115,14 @@ def test_the_level_step_solves_the_constrained_normal_equations():
     torch.testing.assert_close((th[7:9] + dp.T[7:9]).sum(1), torch.zeros(2, dtype=torch.float64), atol=1e-9, rtol=0)
 
 
-def test_a_level_sample_places_the_lights_under_a_brightness_gradient(monkeypatch):
+def test_a_level_sample_places_the_lights_under_a_brightness_gradient():
     """Float photos with little noise of an embossed leather under LEDs ±5 mm off, ±20% in
     brightness and brighter toward +x (exp(0.08 x): ±7% across the dome). Under the
-    convention that the sample lies level (``selfcal.LEVEL``) the intensities and then
+    convention that the sample lies level (``self_calibrate_gradient``) the intensities and then
     the positions fitted from the rig file's places find the LEDs within 1 mm on average,
     the gains within 2% with their gradient, and maps fitted with them tilt the sample by
     less than 0.003 on average (its true mean slope is none); under the convention that
     the dome has no gradient, the LEDs end farther off."""
-    from matscan.reconstruct import selfcal
     from matscan.reconstruct.selfcal import estimate_gains
 
     maps = generate("leather", 64, 1)
@@ -134,17 +133,17 @@ def test_a_level_sample_places_the_lights_under_a_brightness_gradient(monkeypatc
     photos = _photos(maps, offsets, gains, noise=0.0005)
     sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
     cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES)
-    cfg = ReconstructConfig(model="none", refine="on")
     truth = _true_lights(offsets).position
     errors = {}
     for level in (True, False):
-        monkeypatch.setattr(selfcal, "LEVEL", level)
+        cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_gradient=level)
         g1, _ = estimate_gains(cap, cfg)
         lights, g2, _, _ = estimate_positions(cap, g1, cfg)
         errors[level] = float((lights.position - truth).norm(dim=1).mean())
         if level:
             assert float((g2 / gains - 1).abs().max()) < 0.02
-            fit = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
+            plain = ReconstructConfig(model="none", refine="on")
+            fit = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), plain)
             n = fit.maps.normal
             assert float((n[0] / n[2]).mean().abs()) < 0.003 and float((n[1] / n[2]).mean().abs()) < 0.003
     assert errors[True] < 1.0 < errors[False], errors

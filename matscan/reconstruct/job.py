@@ -49,6 +49,13 @@ if TYPE_CHECKING:
 REFINE_CHOICES = ("auto", "on", "off")
 #: The self-calibration's light scales, as a calibration file later captures can name.
 SELF_CALIBRATION = "self_calibration.json"
+#: Every self-calibration setting off: the fits the self-calibration makes, and the one after it.
+SELF_CALIBRATION_OFF = {
+    "self_calibrate": False,
+    "self_calibrate_positions": False,
+    "shared_f0": False,
+    "self_calibrate_gradient": False,
+}
 SOLVERS = ("lm", "adam")
 
 
@@ -79,6 +86,9 @@ class ReconstructConfig:
     # in that fit, one F0 for the dielectric pixels (lightpos.SHARED_F0's alternative, off by
     # default: docs/rti.md); needs self_calibrate_positions
     shared_f0: bool = False
+    # in the self-calibration, take the sample as lying level and let the gains vary across the
+    # dome (selfcal.LEVEL's alternative, off by default: docs/rti.md); needs self_calibrate
+    self_calibrate_gradient: bool = False
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
 
@@ -106,6 +116,10 @@ class ReconstructConfig:
             )
         if self.shared_f0 and not self.self_calibrate_positions:
             raise MatscanError("shared_f0: needs self_calibrate_positions (it is a setting of the positions' fit)")
+        if self.self_calibrate_gradient and not self.self_calibrate:
+            raise MatscanError(
+                "self_calibrate_gradient: needs self_calibrate (it is a setting of the intensities' fit)"
+            )
 
 
 #: ``--refine auto`` refines captures with at least this many photos, per solver. With the
@@ -368,7 +382,7 @@ def reconstruct_capture(
         seconds = time.perf_counter() - t0
         result = reconstruct_capture(
             with_gains(capture, gains),
-            replace(cfg, self_calibrate=False, self_calibrate_positions=False, shared_f0=False),
+            replace(cfg, **SELF_CALIBRATION_OFF),
             nets,
             progress,
             anyrig,

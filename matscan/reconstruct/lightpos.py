@@ -360,7 +360,9 @@ def _free_directions(lights: LightSet, near: Tensor, gradient: bool = False) -> 
 class _Photos:
     """What the joint fit fits: the lights (float64; positions where the fit starts), each
     near light's aim point (N, 3), which lights are near (N,), the pixels' surface points
-    (P, 3), their values (N, 3, P) and which of them are usable (N, 3, P; 1 or 0)."""
+    (P, 3), their values (N, 3, P) and which of them are usable (N, 3, P; 1 or 0), and
+    whether the gains' gradient is fitted with the pixels' mean slope held at none
+    (``level``, :func:`_with_level`) or the gradient kept."""
 
     lights: LightSet
     aims: Tensor
@@ -368,6 +370,7 @@ class _Photos:
     pts: Tensor
     y: Tensor
     valid: Tensor
+    level: bool = False
 
 
 @dataclass(frozen=True)
@@ -485,7 +488,7 @@ def _solve(
     per_pixel = (wt * (y - m0) ** 2).sum((0, 1)) / valid.sum((0, 1)).clamp_min(1)
     used = per_pixel <= OUTLIER * per_pixel.median()
     th, y, valid, wt, pts = th[:, used], y[..., used], valid[..., used], wt[..., used], pts[used]
-    level = selfcal.LEVEL
+    level = photos.level
     basis = _free_directions(lights, photos.near, gradient=level)
     shared = (th[3:6] < SHARED_BELOW).all(0) if shared_f0 else torch.zeros(th.shape[1], dtype=torch.bool)
     if shared.any():
@@ -618,10 +621,14 @@ def _second_order(photos: _Photos, fit: _Solved) -> tuple[Tensor, Tensor, dict[s
         u = h * (vec[:, :, k] * ev[:, k : k + 1].clamp_min(0).sqrt()).T  # (9, P)
         curved += (_render(fit.th + u, base, pts) + _render(fit.th - u, base, pts) - 2 * m) / h**2
     a, gp, b, c, gl = normal_equations(fit.th, lights, photos.aims, gains, pts, wt, m - 0.5 * curved, jac)
+    if photos.level:  # the bias step keeps the pixels' mean slope
+        b, c, gl = _with_level(b, c, gl, torch.zeros_like(fit.th))
     _, s, rhs = reduced_system(a, gp, b, c, gl, 0.0)
     n = len(lights)
-    basis = _free_directions(photos.lights, photos.near)
-    bias = basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs)
+    basis = _free_directions(photos.lights, photos.near, gradient=photos.level)
+    if photos.level:
+        basis = torch.block_diag(basis, torch.eye(2, dtype=F64))
+    bias = (basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs))[: 6 * n]
     shift_pos = torch.where(photos.near[:, None], bias[: 3 * n].reshape(n, 3), torch.zeros(n, 3, dtype=F64))
     norm = shift_pos.norm(dim=1)[photos.near]
     record = {
@@ -640,6 +647,7 @@ def fit_positions(
     bias_pairs: int | None = None,
     second_order: bool | None = None,
     shared_f0: bool | None = None,
+    level: bool | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
     the maps by ``iterations`` Gauss–Newton steps (``ITERATIONS`` when None), their bias
@@ -647,14 +655,16 @@ def fit_positions(
     left in) or, without pairs and with ``second_order`` (``SECOND_ORDER`` when None), by
     its second-order formula after a fit that holds the pixels' numbers near their start
     (module doc). With ``shared_f0`` (``SHARED_F0`` when None) the dielectric pixels share
-    one F0 in the fit. ``progress`` is called with the steps done so far, of
+    one F0 in the fit. With ``level`` (``selfcal.LEVEL`` when None) the gains' gradient
+    across the dome is fitted too and the kept pixels' mean slope held at none
+    (:func:`_with_level`). ``progress`` is called with the steps done so far, of
     ``iterations`` · (1 + 2 · pairs).
 
     ``capture`` is the capture as calibrated before self-calibration, already reduced to
     the pixels to use; ``maps`` are maps fitted to its photos divided by ``gains`` (the
     start), which are gains times any intensity scale of that fit. Directional lights keep
-    their directions. Returns the positions, the gains (the start's overall factor and
-    gradient across the dome kept) and a record."""
+    their directions. Returns the positions, the gains (the start's overall factor, and
+    without ``level`` its gradient across the dome, kept) and a record."""
     n = len(capture.files)
     lights = _double(capture.lights)
     near = lights.w > 0.5
@@ -673,6 +683,7 @@ def fit_positions(
         pts=surface_points(capture.field_mm, (h, w), dtype=F64).reshape(-1, 3),
         y=capture.linear(list(range(n))).to(F64).reshape(n, 3, -1),
         valid=(~capture.saturation(list(range(n)))).to(F64).reshape(n, 1, -1).expand(n, 3, -1),
+        level=selfcal.LEVEL if level is None else level,
     )
     spec = maps.specular.to(F64).reshape(maps.specular.shape[0], -1).expand(3, -1)
     th = torch.cat(
@@ -765,7 +776,7 @@ def estimate_positions(
     pixel (``POSITION_SIDE``). Without near lights, or where the capture gives each
     photo's geometry (a flash rig: measured on domes only), the lights are returned as
     None and the gains unchanged."""
-    from matscan.reconstruct.job import reconstruct_capture
+    from matscan.reconstruct.job import SELF_CALIBRATION_OFF, reconstruct_capture
     from matscan.reconstruct.selfcal import gauged, reduced, with_gains
 
     near = capture.lights.w > 0.5
@@ -784,11 +795,10 @@ def estimate_positions(
     h, w = capture.size
     factor = max(1, math.ceil(max(h, w) / POSITION_SIDE))
     small = reduced(capture, factor)
-    fit_cfg = replace(
-        cfg, refine="on", solver="lm", self_calibrate=False, self_calibrate_positions=False, shared_f0=False, validate=0
-    )
+    fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, **SELF_CALIBRATION_OFF)
     start = reconstruct_capture(with_gains(small, gains), fit_cfg, None)
     shared = cfg.shared_f0 or SHARED_F0
+    level = cfg.self_calibrate_gradient or selfcal.LEVEL
     steps = SHARED_ITERATIONS if cfg.shared_f0 else ITERATIONS
     total = steps * (1 + 2 * BIAS_PAIRS + (1 if shared else 0))  # the shared F0's second start
     with tqdm(total=total, desc="positions", unit="step", disable=not progress, leave=False) as bar:
@@ -799,6 +809,7 @@ def estimate_positions(
             iterations=steps,
             progress=lambda i: bar.update(i - bar.n),
             shared_f0=shared,
+            level=level,
         )
     record["reduced_by"] = factor
     record["light_positions_mm"] = {
@@ -812,4 +823,4 @@ def estimate_positions(
             f"place (more than {MOVED_WARN_MM:.0f} mm): check the rig file, or measure the positions with "
             "`matscan calibrate --grey --positions` or `matscan rig from-spheres`"
         )
-    return lights, gauged(fitted, capture.lights), record, notes
+    return lights, gauged(fitted, capture.lights, level), record, notes

@@ -131,7 +131,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     """Per-photo RGB gains (N, 3) of a capture (module doc) and a record: the gains by
     photo, how many photos the last round could read, whether any round updated the
     gains, and the re-rendering RMSE of the sampled pixels before and after."""
-    from matscan.reconstruct.job import reconstruct_capture
+    from matscan.reconstruct.job import SELF_CALIBRATION_OFF, reconstruct_capture
     from matscan.reconstruct.solver import rerender_error
 
     n = len(capture.files)
@@ -144,8 +144,8 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     factor = max(1, math.ceil(max(h, w) / ROUND_SIDE))
     small = reduced(capture, factor)
     lm = replace(cfg.lm, prior_roughness=cfg.lm.prior_roughness * ROUGHNESS_HOLD)
-    off = {"self_calibrate": False, "self_calibrate_positions": False, "shared_f0": False}
-    fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, lm=lm, **off)
+    level = cfg.self_calibrate_gradient or LEVEL
+    fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, lm=lm, **SELF_CALIBRATION_OFF)
     gains = torch.ones(n, 3)
     history = []
     updated = False
@@ -156,7 +156,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
         res = reconstruct_capture(cap, fit_cfg, None)
         if not history:
             history.append(rerender_error(res.maps, cap, list(range(n)), res.intensity_scale))
-        shown = levelled(res.maps) if LEVEL else res.maps
+        shown = levelled(res.maps) if level else res.maps
         matte = MapSet(**{**shown.present(), "specular": torch.zeros_like(shown.specular)})
         for i in range(n):
             with torch.no_grad():
@@ -174,7 +174,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
             update = torch.ones(n, 3)
         else:
             updated = True
-        gains = gauged(gains * update.clamp(0.2, 5.0), small.lights)
+        gains = gauged(gains * update.clamp(0.2, 5.0), small.lights, level)
     history.append(_fit_error(small, gains, fit_cfg))
     worse = updated and history[-1] >= history[0]
     if worse:  # the estimate explains the photos no better than the capture's own intensities
@@ -185,6 +185,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
         "photos_read": int(read.sum()),  # in the last round
         "updated": updated,
         "reduced_by": factor,
+        "convention": "level sample" if level else "no gradient",  # what fixed the gains' gradient
         "rerender_rmse": {"before": round(history[0], 6), "after": round(history[-1], 6)},
     }
     if worse:
@@ -192,11 +193,11 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     return gains, record
 
 
-def gauged(gains: Tensor, lights: LightSet) -> Tensor:
-    """Gains (N, 3) under the convention ``LEVEL`` sets: divided by their geometric mean
-    per channel, and with ``LEVEL`` off their gradient across the dome removed too
-    (:func:`without_tilt`)."""
-    if not LEVEL:
+def gauged(gains: Tensor, lights: LightSet, level: bool) -> Tensor:
+    """Gains (N, 3) under the convention ``level`` chooses (``LEVEL``): divided by their
+    geometric mean per channel, and without ``level`` their gradient across the dome
+    removed too (:func:`without_tilt`)."""
+    if not level:
         return without_tilt(gains, lights)
     log = gains.log().double()
     return (log - log.mean(dim=0, keepdim=True)).exp().float()
