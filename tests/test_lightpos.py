@@ -84,7 +84,7 @@ def test_the_level_step_solves_the_constrained_normal_equations():
     """The step of the fit that holds the pixels' mean slope (``selfcal.LEVEL``), made as
     the fit makes it (pixels eliminated, two multipliers beside the lights' numbers), is
     the solution of the whole system's normal equations under the linear constraint
-    that the slopes' sum after the step is none, solved densely (its KKT system)."""
+    that the slopes' sum after the step is the start's, solved densely (its KKT system)."""
     from matscan.reconstruct.lightpos import _with_level, reduced_system
 
     g = torch.Generator().manual_seed(0)
@@ -97,10 +97,12 @@ def test_the_level_step_solves_the_constrained_normal_equations():
     h = jac.T @ jac
     grad = torch.randn(9 * p_count + k, generator=g, dtype=torch.float64)
     th = torch.randn(9, p_count, generator=g, dtype=torch.float64)
+    start = torch.randn(9, p_count, generator=g, dtype=torch.float64)
     a = torch.stack([h[9 * p : 9 * p + 9, 9 * p : 9 * p + 9] for p in range(p_count)])
     b = torch.stack([h[9 * p : 9 * p + 9, 9 * p_count :] for p in range(p_count)])
     c, gl, gp = h[9 * p_count :, 9 * p_count :], grad[9 * p_count :], grad[: 9 * p_count].reshape(p_count, 9)
-    b2, c2, gl2 = _with_level(b, c, gl, th)
+    moved = (th[7:9] - start[7:9]).sum(1)
+    b2, c2, gl2 = _with_level(b, c, gl, moved)
     ad, s, rhs = reduced_system(a, gp, b2, c2, gl2, 0.0)
     dl = torch.linalg.solve(s, rhs)
     dp = torch.linalg.solve(ad, (gp - torch.einsum("pik,k->pi", b2, dl))[..., None])[..., 0]
@@ -109,10 +111,11 @@ def test_the_level_step_solves_the_constrained_normal_equations():
     for p in range(p_count):
         e[9 * p + 7, 0] = e[9 * p + 8, 1] = 1
     kkt = torch.cat([torch.cat([h, e], 1), torch.cat([e.T, torch.zeros(2, 2, dtype=torch.float64)], 1)])
-    x = torch.linalg.solve(kkt, torch.cat([grad, -th[7:9].sum(1)]))
+    x = torch.linalg.solve(kkt, torch.cat([grad, -moved]))
     torch.testing.assert_close(dp.reshape(-1), x[: 9 * p_count], atol=1e-7, rtol=1e-6)
     torch.testing.assert_close(dl[:k], x[9 * p_count : -2], atol=1e-7, rtol=1e-6)
-    torch.testing.assert_close((th[7:9] + dp.T[7:9]).sum(1), torch.zeros(2, dtype=torch.float64), atol=1e-9, rtol=0)
+    after = (th[7:9] + dp.T[7:9] - start[7:9]).sum(1)
+    torch.testing.assert_close(after, torch.zeros(2, dtype=torch.float64), atol=1e-9, rtol=0)
 
 
 def test_a_level_sample_places_the_lights_under_a_brightness_gradient():

@@ -50,14 +50,16 @@ def test_without_tilt_removes_a_gradient_and_the_mean_exactly():
     assert torch.allclose(gains.log().mean(0), torch.zeros(3), atol=1e-6)
 
 
-def test_levelled_removes_a_tilt_and_keeps_the_relief():
-    """Normals of a relief whose slopes average to none over the image (two whole
-    periods of a cosine along each axis) on a plane of slope (0.15, -0.08): levelled,
-    they are the relief's own normals."""
-    h, w = 32, 48
-    col = torch.cos(2 * math.pi * 2 * (torch.arange(w) + 0.5) / w)
-    row = torch.cos(2 * math.pi * 2 * (torch.arange(h) + 0.5) / h)
-    relief = torch.stack([0.4 * col.expand(h, w), -0.3 * row[:, None].expand(h, w)])
+def test_levelled_lays_the_ground_level_and_keeps_the_relief():
+    """Normals of a flat ground (two thirds of the image) with a ramp rising along x on
+    the other third (slope 0.6: a relief the field's edge cuts, whose mean slope is 0.2)
+    and a bump along y, on a plane of slope (0.15, -0.08): levelled, they are the ground
+    and relief's own normals, the ground level, however far the relief's mean slope is
+    from none."""
+    h, w = 33, 48
+    relief = torch.zeros(2, h, w)
+    relief[0, :, :16] = 0.6
+    relief[1, :8] = 0.3 * torch.sin(2 * math.pi * (torch.arange(8) + 0.5) / 8)[:, None]
 
     def normals(slopes):
         n = torch.cat([slopes, torch.ones(1, h, w)])

@@ -411,16 +411,18 @@ def _with_shared_f0(a: Tensor, gp: Tensor, b: Tensor, c: Tensor, gl: Tensor, sha
     return a, gp, torch.cat([b, bf], 2), c, torch.cat([gl, glf])
 
 
-def _with_level(b: Tensor, c: Tensor, gl: Tensor, th: Tensor):
+def _with_level(b: Tensor, c: Tensor, gl: Tensor, moved: Tensor):
     """The normal equations (:func:`normal_equations`) with the step held to bring the
-    pixels' mean slope (x and y) to none: two Lagrange multipliers appended to the lights'
-    numbers, coupled to every pixel's two slopes, with no block of their own, and whose
-    right side is minus the slopes' present sum (``selfcal.LEVEL``)."""
+    pixels' slopes' sum (x and y) back by ``moved`` (2,), how far it has moved from the
+    start: two Lagrange multipliers appended to the lights' numbers, coupled to every
+    pixel's two slopes, with no block of their own, and whose right side is −``moved``
+    (``selfcal.LEVEL``: the start's maps were levelled by the intensities' rounds, and
+    the fit keeps the sample's tilt where they put it)."""
     e = torch.zeros(b.shape[0], 9, 2, dtype=F64)
     e[:, 7, 0] = 1
     e[:, 8, 1] = 1
     c = torch.block_diag(c, torch.zeros(2, 2, dtype=F64))
-    return torch.cat([b, e], 2), c, torch.cat([gl, -th[7:9].sum(1)])
+    return torch.cat([b, e], 2), c, torch.cat([gl, -moved])
 
 
 def _reseeded(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor) -> Tensor:
@@ -535,7 +537,7 @@ def _solve(
         if extra:
             a, gp, b, c, gl = _with_shared_f0(a, gp, b, c, gl, shared)
         if level:
-            b, c, gl = _with_level(b, c, gl, th)
+            b, c, gl = _with_level(b, c, gl, (th[7:9] - start[7:9]).sum(1))
         for _ in range(8):
             ad, s, rhs = reduced_system(a, gp, b, c, gl, mu)
             dl = basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs)
@@ -622,7 +624,7 @@ def _second_order(photos: _Photos, fit: _Solved) -> tuple[Tensor, Tensor, dict[s
         curved += (_render(fit.th + u, base, pts) + _render(fit.th - u, base, pts) - 2 * m) / h**2
     a, gp, b, c, gl = normal_equations(fit.th, lights, photos.aims, gains, pts, wt, m - 0.5 * curved, jac)
     if photos.level:  # the bias step keeps the pixels' mean slope
-        b, c, gl = _with_level(b, c, gl, torch.zeros_like(fit.th))
+        b, c, gl = _with_level(b, c, gl, torch.zeros(2, dtype=F64))
     _, s, rhs = reduced_system(a, gp, b, c, gl, 0.0)
     n = len(lights)
     basis = _free_directions(photos.lights, photos.near, gradient=photos.level)

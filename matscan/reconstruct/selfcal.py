@@ -204,13 +204,18 @@ def gauged(gains: Tensor, lights: LightSet, level: bool) -> Tensor:
 
 
 def levelled(maps: MapSet) -> MapSet:
-    """The maps with the mean of their normals' slopes (n_x / n_z, n_y / n_z) over the
+    """The maps with the median of their normals' slopes (n_x / n_z, n_y / n_z) over the
     image subtracted from every pixel's: the relief kept, the sample laid level (a
-    heightfield sheared by its mean gradient)."""
+    heightfield sheared). The median, not the mean: the mean slope is the height's
+    drop from one edge of the field to the other over its width, which a relief cut by
+    the field's edges makes large (a sheet embossed with coins 7 mm high: 0.045, where
+    its flat ground lies level), and a fit's few wrong slopes (a steep flank's) move it;
+    on bench/nearcal.py's 25 materials the true maps' median slope is within 0.011 of
+    none."""
     n = maps.normal
     nz = n[2:3].clamp_min(0.2)
     slope = n[0:2] / nz
-    slope = slope - slope.mean(dim=(1, 2), keepdim=True)
+    slope = slope - slope.reshape(2, -1).median(dim=1).values[:, None, None]
     n = torch.cat([slope, torch.ones_like(nz)])
     return MapSet(**{**maps.present(), "normal": n / n.norm(dim=0, keepdim=True)})
 
