@@ -16,6 +16,10 @@ from pathlib import Path
 from matscan import __version__
 from matscan.errors import MatscanError
 
+#: ``--led-gradient``'s choices (matscan.reconstruct.job.LED_GRADIENTS, not imported here:
+#: it would import torch for --help)
+LED_GRADIENTS = ("auto", "fit", "none")
+
 
 def _maps_arg(text: str) -> Path:
     """A map set folder, or ``@name`` for a built-in sample map set."""
@@ -153,10 +157,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         exr=args.exr,
         directx_normals=args.directx_normals,
         validate=args.validate,
-        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0 or args.level,
+        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0,
         self_calibrate_positions=args.self_calibrate_positions or args.shared_f0,
         shared_f0=args.shared_f0,
-        self_calibrate_gradient=args.level,
+        led_gradient=args.led_gradient,
     )
     rec = reconstruct(
         _capture_arg(args.capture),
@@ -557,10 +561,10 @@ def cmd_batch(args: argparse.Namespace) -> str:
         refine=args.refine,
         solver=args.solver,
         validate=args.validate,
-        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0 or args.level,
+        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0,
         self_calibrate_positions=args.self_calibrate_positions or args.shared_f0,
         shared_f0=args.shared_f0,
-        self_calibrate_gradient=args.level,
+        led_gradient=args.led_gradient,
         exr=args.exr,
         mirrors=args.mirrors,
     )
@@ -809,12 +813,14 @@ def build_parser() -> argparse.ArgumentParser:
         "worse for a foil print on paper; several times the positions' time (docs/rti.md)",
     )
     p.add_argument(
-        "--self-calibrate-gradient",
-        dest="level",
-        action="store_true",
-        help="--self-calibrate taking the sample as lying level and letting the LEDs' brightness vary from one "
-        "side of the dome to the other (the default takes the dome as without such a gradient, which a tilted "
-        "sample photographs like): for a dome whose LEDs were never calibrated (docs/rti.md)",
+        "--led-gradient",
+        dest="led_gradient",
+        choices=LED_GRADIENTS,
+        default="auto",
+        help="with --self-calibrate: what fixes the LEDs' brightness gradient from one side of the dome to the "
+        "other, which a tilted sample photographs like: fit (the sample lies level), none (the LEDs have no "
+        "gradient; the sample's tilt is fitted), auto (default: LED_GRADIENT_AUTO; none where the calibration "
+        "scales every light, as a grey card measures them) (docs/rti.md)",
     )
     p.add_argument(
         "--validate",
@@ -1160,7 +1166,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--self-calibrate-positions", dest="self_calibrate_positions", action="store_true", help="as for reconstruct"
     )
     p.add_argument("--shared-f0", dest="shared_f0", action="store_true", help="as for reconstruct")
-    p.add_argument("--self-calibrate-gradient", dest="level", action="store_true", help="as for reconstruct")
+    p.add_argument(
+        "--led-gradient", dest="led_gradient", choices=LED_GRADIENTS, default="auto", help="as for reconstruct"
+    )
     p.add_argument("--exr", action="store_true", help="also write every map as float EXR")
     p.add_argument("--mirrors", action="store_true", help="as for reconstruct")
     p.set_defaults(func=cmd_batch)

@@ -121,7 +121,7 @@ def test_the_level_step_solves_the_constrained_normal_equations():
 def test_a_level_sample_places_the_lights_under_a_brightness_gradient():
     """Float photos with little noise of an embossed leather under LEDs ±5 mm off, ±20% in
     brightness and brighter toward +x (exp(0.08 x): ±7% across the dome). Under the
-    convention that the sample lies level (``self_calibrate_gradient``) the intensities and then
+    convention that the sample lies level (``led_gradient`` "fit") the intensities and then
     the positions fitted from the rig file's places find the LEDs within 1 mm on average,
     the gains within 2% with their gradient, and maps fitted with them tilt the sample by
     less than 0.003 on average (its true mean slope is none); under the convention that
@@ -139,7 +139,8 @@ def test_a_level_sample_places_the_lights_under_a_brightness_gradient():
     truth = _true_lights(offsets).position
     errors = {}
     for level in (True, False):
-        cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_gradient=level)
+        gradient = "fit" if level else "none"
+        cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, led_gradient=gradient)
         g1, _ = estimate_gains(cap, cfg)
         lights, g2, _, _ = estimate_positions(cap, g1, cfg)
         errors[level] = float((lights.position - truth).norm(dim=1).mean())

@@ -79,7 +79,7 @@ def test_levelled_lays_the_ground_level_and_keeps_the_relief():
 def test_a_level_sample_gives_a_brightness_gradient_back():
     """A matte paper photographed exactly under LEDs ±20% in brightness and brighter
     toward +x (exp(0.08 x), x each LED direction's component: ±7% across the dome). Under
-    the convention that the sample lies level (``self_calibrate_gradient``) the gains
+    the convention that the sample lies level (``led_gradient`` "fit") the gains
     come back within 1% with their gradient; under the convention that the dome has none,
     the gradient is lost and the gains are more than 3% off."""
     maps = generate("paper", 96, 1)
@@ -88,23 +88,41 @@ def test_a_level_sample_gives_a_brightness_gradient_back():
     gains = _gains() * torch.exp(0.08 * d[:, :1])
     gains = gains / gains.log().mean(0).exp()  # the convention's overall factor
     cap, cfg = _exact_capture(maps, gains), ReconstructConfig(model="none", refine="on", self_calibrate=True)
-    level, record = estimate_gains(cap, replace(cfg, self_calibrate_gradient=True))
+    level, record = estimate_gains(cap, replace(cfg, led_gradient="fit"))
     assert float((level / gains - 1).abs().max()) < 0.01
     assert record["convention"] == "level sample"
-    flat, record = estimate_gains(cap, cfg)
+    flat, record = estimate_gains(cap, replace(cfg, led_gradient="none"))
     assert float((flat / gains - 1).abs().max()) > 0.03
     assert record["convention"] == "no gradient"
 
 
 def test_the_gradient_needs_the_intensities():
-    with pytest.raises(MatscanError, match="self_calibrate_gradient: needs self_calibrate"):
-        ReconstructConfig(self_calibrate_gradient=True)
+    with pytest.raises(MatscanError, match="led_gradient: needs self_calibrate"):
+        ReconstructConfig(led_gradient="fit")
+    with pytest.raises(MatscanError, match="led_gradient: 'sideways' is not one of auto, fit, none"):
+        ReconstructConfig(self_calibrate=True, led_gradient="sideways")
+
+
+def test_auto_keeps_a_gradient_the_calibration_measured(monkeypatch):
+    """``led_gradient`` "auto" fits the gradient as ``LEVEL`` says, but not where the
+    capture's calibration scales every light (a grey card measured the gradient); "fit"
+    and "none" say so whatever the capture."""
+    cap = _exact_capture(generate("paper", 8, 1), torch.ones(24, 3))
+    scaled = replace(cap, calibration={"light_scales": {str(k): [1.0, 1.0, 1.0] for k in range(24)}})
+    partly = replace(cap, calibration={"light_scales": {str(k): [1.0, 1.0, 1.0] for k in range(12)}})
+    cfg = ReconstructConfig(model="none", self_calibrate=True)
+    for level in (True, False):
+        monkeypatch.setattr(selfcal, "LEVEL", level)
+        assert selfcal.fits_gradient(cap, cfg) is level and selfcal.fits_gradient(partly, cfg) is level
+        assert selfcal.fits_gradient(scaled, cfg) is False
+        assert selfcal.fits_gradient(scaled, replace(cfg, led_gradient="fit")) is True
+        assert selfcal.fits_gradient(cap, replace(cfg, led_gradient="none")) is False
 
 
 def test_the_cli_flag_fits_the_gradient(tmp_path):
-    """``reconstruct --self-calibrate-gradient`` implies the intensities' fit and records
-    its convention; the gains written come back with the LEDs' gradient (exp(0.08 x)),
-    within 2% of the truth on a paper photographed at 48² with the camera's noise."""
+    """``reconstruct --self-calibrate --led-gradient fit`` records its convention, and
+    the gains written come back with the LEDs' gradient (exp(0.08 x)), within 2% of the
+    truth on a paper photographed at 48² with the camera's noise."""
     from matscan.cli import main
 
     d = RIG.light_set().position / RIG.light_set().position.norm(dim=1, keepdim=True)
@@ -113,10 +131,10 @@ def test_the_cli_flag_fits_the_gradient(tmp_path):
     out = tmp_path / "out"
     main(
         ["reconstruct", str(_capture(tmp_path, generate("paper", 48, 1), gains)), "--out", str(out), "--model", "none"]
-        + ["--self-calibrate-gradient"]
+        + ["--self-calibrate", "--led-gradient", "fit"]
     )
     record = json.loads((out / "matscan.json").read_text())
-    assert record["config"]["self_calibrate"] is True and record["config"]["self_calibrate_gradient"] is True
+    assert record["config"]["self_calibrate"] is True and record["config"]["led_gradient"] == "fit"
     assert record["self_calibration"]["convention"] == "level sample"
     written = torch.tensor([record["self_calibration"]["light_gains"][f"led_{k:02d}.png"] for k in range(24)])
     assert float((written / gains - 1).abs().max()) < 0.02

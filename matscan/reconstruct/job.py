@@ -54,8 +54,10 @@ SELF_CALIBRATION_OFF = {
     "self_calibrate": False,
     "self_calibrate_positions": False,
     "shared_f0": False,
-    "self_calibrate_gradient": False,
+    "led_gradient": "auto",
 }
+#: ``ReconstructConfig.led_gradient``'s values (selfcal.fits_gradient).
+LED_GRADIENTS = ("auto", "fit", "none")
 SOLVERS = ("lm", "adam")
 
 
@@ -86,9 +88,11 @@ class ReconstructConfig:
     # in that fit, one F0 for the dielectric pixels (lightpos.SHARED_F0's alternative, off by
     # default: docs/rti.md); needs self_calibrate_positions
     shared_f0: bool = False
-    # in the self-calibration, take the sample as lying level and let the gains vary across the
-    # dome (selfcal.LEVEL's alternative, off by default: docs/rti.md); needs self_calibrate
-    self_calibrate_gradient: bool = False
+    # what fixes the self-calibrated gains' gradient across the dome, which a tilted sample
+    # photographs like (selfcal.fits_gradient): "fit" (the sample lies level, the gradient is
+    # fitted), "none" (the LEDs have none), "auto" (selfcal.LEVEL's choice, "none" where the
+    # capture's calibration scales every light); other than "auto" needs self_calibrate
+    led_gradient: str = "auto"
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
 
@@ -116,10 +120,10 @@ class ReconstructConfig:
             )
         if self.shared_f0 and not self.self_calibrate_positions:
             raise MatscanError("shared_f0: needs self_calibrate_positions (it is a setting of the positions' fit)")
-        if self.self_calibrate_gradient and not self.self_calibrate:
-            raise MatscanError(
-                "self_calibrate_gradient: needs self_calibrate (it is a setting of the intensities' fit)"
-            )
+        if self.led_gradient not in LED_GRADIENTS:
+            raise MatscanError(f"led_gradient: {self.led_gradient!r} is not one of {', '.join(LED_GRADIENTS)}")
+        if self.led_gradient != "auto" and not self.self_calibrate:
+            raise MatscanError("led_gradient: needs self_calibrate (it is a setting of the intensities' fit)")
 
 
 #: ``--refine auto`` refines captures with at least this many photos, per solver. With the

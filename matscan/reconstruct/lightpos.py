@@ -800,7 +800,7 @@ def estimate_positions(
     fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, **SELF_CALIBRATION_OFF)
     start = reconstruct_capture(with_gains(small, gains), fit_cfg, None)
     shared = cfg.shared_f0 or SHARED_F0
-    level = cfg.self_calibrate_gradient or selfcal.LEVEL
+    level = selfcal.fits_gradient(capture, cfg)
     steps = SHARED_ITERATIONS if cfg.shared_f0 else ITERATIONS
     total = steps * (1 + 2 * BIAS_PAIRS + (1 if shared else 0))  # the shared F0's second start
     with tqdm(total=total, desc="positions", unit="step", disable=not progress, leave=False) as bar:

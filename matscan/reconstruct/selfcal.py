@@ -144,7 +144,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     factor = max(1, math.ceil(max(h, w) / ROUND_SIDE))
     small = reduced(capture, factor)
     lm = replace(cfg.lm, prior_roughness=cfg.lm.prior_roughness * ROUGHNESS_HOLD)
-    level = cfg.self_calibrate_gradient or LEVEL
+    level = fits_gradient(capture, cfg)
     fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, lm=lm, **SELF_CALIBRATION_OFF)
     gains = torch.ones(n, 3)
     history = []
@@ -191,6 +191,19 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     if worse:
         record["rejected"] = "the estimated intensities re-render the photos no better than the capture's own"
     return gains, record
+
+
+def fits_gradient(capture: Capture, cfg: ReconstructConfig) -> bool:
+    """Whether the self-calibration fits the gains' gradient across the dome, the sample
+    taken as lying level (``cfg.led_gradient``): "fit" yes, "none" no, "auto" as ``LEVEL``
+    says, but no where the capture's calibration scales every light (a grey card measured
+    the gradient: the gains then correct it, and a sample that does not lie flat keeps
+    its tilt)."""
+    if cfg.led_gradient != "auto":
+        return cfg.led_gradient == "fit"
+    scaled = (capture.calibration or {}).get("light_scales", {})
+    measured = bool(scaled) and all(k is None or str(k) in scaled for k in capture.light_indices)
+    return LEVEL and not measured
 
 
 def gauged(gains: Tensor, lights: LightSet, level: bool) -> Tensor:
