@@ -122,10 +122,11 @@ def test_a_level_sample_places_the_lights_under_a_brightness_gradient():
     """Float photos with little noise of an embossed leather under LEDs ±5 mm off, ±20% in
     brightness and brighter toward +x (exp(0.08 x): ±7% across the dome). Under the
     convention that the sample lies level (``led_gradient`` "fit") the intensities and then
-    the positions fitted from the rig file's places find the LEDs within 1 mm on average,
+    the positions fitted from the rig file's places find the LEDs within 2 mm on average,
     the gains within 2% with their gradient, and maps fitted with them tilt the sample by
     less than 0.003 on average (its true mean slope is none); under the convention that
-    the dome has no gradient, the LEDs end farther off."""
+    the dome has no gradient, the LEDs end more than twice as far off (1.46 and 5.07 mm
+    when written)."""
     from matscan.reconstruct.selfcal import estimate_gains
 
     maps = generate("leather", 64, 1)
@@ -150,7 +151,7 @@ def test_a_level_sample_places_the_lights_under_a_brightness_gradient():
             fit = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), plain)
             n = fit.maps.normal
             assert float((n[0] / n[2]).mean().abs()) < 0.003 and float((n[1] / n[2]).mean().abs()) < 0.003
-    assert errors[True] < 1.0 < errors[False], errors
+    assert errors[True] < 2.0 and errors[False] > 2 * errors[True], errors
 
 
 @pytest.fixture(scope="module")
@@ -158,7 +159,9 @@ def drifted():
     """Photos of a photographed grass (64², the camera's shot and read noise, 8-bit sRGB)
     with their true lights, gains and maps, and where the joint fit, started at that
     truth, ends after 30 steps with its bias left in (module doc: 1.73 mm off when written,
-    mostly by its bias)."""
+    mostly by its bias). The bias and its corrections were measured under the convention
+    of no gradient across the dome, and these tests keep it (``level=False``); under the
+    level convention the same fit drifts 1.00 mm."""
     maps = photo_material("grass", 64)
     offsets, gains = _offsets(), _gains()
     truth = _true_lights(offsets)
@@ -166,7 +169,7 @@ def drifted():
     photos = simulate_images(maps, lit, RIG.field_mm, CameraModel(read_noise=0.002), seed=1)
     sat = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
     cap = Capture(RIG, RIG.field_mm, "srgb", photos, sat, tuple(range(24)), truth, FILES)
-    left, _, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, second_order=False)
+    left, _, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, second_order=False, level=False)
     assert record["bias"] == {"pairs": 0}
     return cap, maps, gains, truth, left
 
@@ -187,7 +190,7 @@ def test_the_bias_is_measured_by_replicas_and_removed(drifted):
     the truth: what it removes points along it, and the positions come nearer the truth
     (1.73 → 1.08 mm when written)."""
     cap, maps, gains, _, _ = drifted
-    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=1)
+    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=1, level=False)
     assert record["bias"]["pairs"] == 1
     removed = _check_removed(drifted, pos, fitted)
     assert record["bias"]["removed_mm"]["mean"] == pytest.approx(float(removed.norm(dim=1).mean()), abs=1e-3)
@@ -200,7 +203,7 @@ def test_the_second_order_formula_measures_the_bias(drifted):
     Against the fit above, what the two remove points along the drift, and the positions
     come nearer the truth (1.73 → 1.09 mm when written, cosine 0.79)."""
     cap, maps, gains, _, _ = drifted
-    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, second_order=True)
+    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, second_order=True, level=False)
     assert record["bias"]["second_order"] is True and record["bias"]["removed_mm"]["mean"] > 0.3
     _check_removed(drifted, pos, fitted)
 
@@ -211,7 +214,7 @@ def test_a_shared_f0_leaves_less_bias(drifted):
     own (0.53 against 1.73 mm when written), every pixel shares it, and the shared F0
     stays near the grass's true F0, where it started (0.04; 0.041-0.044 when written)."""
     cap, maps, gains, truth, left = drifted
-    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, shared_f0=True)
+    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, shared_f0=True, level=False)
     drift = float((left - truth.position).norm(dim=1).mean())
     assert float((pos - truth.position).norm(dim=1).mean()) < 0.5 * drift
     assert record["shared_f0"]["share"] > 0.95
@@ -226,7 +229,7 @@ def test_the_shared_f0_starts_where_the_photos_put_it(drifted):
     scan that fits the photos best: within 0.008 of the truth."""
     cap, maps, gains, _, _ = drifted
     faint = MapSet(**{**maps.present(), "specular": torch.full_like(maps.specular, 0.012)})
-    _, _, record = fit_positions(cap, faint, gains, iterations=0, bias_pairs=0, shared_f0=True)
+    _, _, record = fit_positions(cap, faint, gains, iterations=0, bias_pairs=0, shared_f0=True, level=False)
     assert record["shared_f0"]["share"] > 0.95 and record["shared_f0"]["roughness"] in ("start", "searched")
     true_f0 = float(maps.specular.mean())
     assert max(abs(v - true_f0) for v in record["shared_f0"]["value"]) < 0.008

@@ -18,7 +18,13 @@ of 30°-50°) drew the LEDs 30 mm away.
 
 What the photos cannot tell is fixed by convention, as for the intensities: the gains'
 overall RGB factor (the albedo takes it) and their gradient across the dome (a tilted
-sample looks the same; the steps keep the gradient the intensities came with, none). A
+sample looks the same). Where the sample is taken as lying level
+(:func:`matscan.reconstruct.selfcal.fits_gradient`) the steps fit the gradient with the
+gains and hold the sum of the kept pixels' slopes where the start, levelled by the
+intensities' rounds, put it (two Lagrange multipliers beside the lights' numbers,
+:func:`_with_level`): with the gradient held at the intensities' estimate instead, made
+at the rig file's places, a photographed brick's lights ended 3.5 mm off (0.86 mm
+held so). Otherwise the steps keep the gradient the intensities came with, none. A
 pixel's step is kept only where it lowers that pixel's misfit, so a few pixels whose
 linearisation is poor (a highlight's edge) cannot reject the lights' step for all.
 
