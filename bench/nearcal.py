@@ -47,8 +47,10 @@ dielectric pixel instead of each pixel's own (``lightpos.SHARED_F0``; with ``--s
 LED's direction from the centre (A = 0.1: about ±9% from one side of the dome to the
 other), a gradient the self-calibration takes as none (a tilted sample looks alike);
 ``--drawn-gradient`` keeps the gradient each draw of ±20% LEDs has (median 0.057),
-which the bench's draws otherwise remove. ``--level`` fits under the other convention,
-the sample level and the gradient in the gains (``selfcal.LEVEL``).
+which the bench's draws otherwise remove. ``--level`` and ``--no-level`` set the
+self-calibration's convention (``selfcal.LEVEL``): the sample level and the gradient in
+the gains (the default since it passed its rule, docs/rti.md), or no gradient (the
+convention every table before that rule was made under).
 ``--split`` prints under each fitted material the gains' RMS error and the PSNR of maps
 fitted with the fitted positions and the true gains, and with the true positions and the
 fitted gains (which of the two the relighting follows), and the mean slope of the fitted
@@ -76,7 +78,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--level]
+[--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
 [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
@@ -346,6 +348,8 @@ def main() -> None:
             lightpos.SHARED_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
             estimator.LEVEL = True
+        if a == "--no-level":  # the former convention: the LEDs without a gradient
+            estimator.LEVEL = False
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
     draw = next((1000 * int(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--seed=")), 0)

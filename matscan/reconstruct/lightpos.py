@@ -367,8 +367,8 @@ class _Photos:
     """What the joint fit fits: the lights (float64; positions where the fit starts), each
     near light's aim point (N, 3), which lights are near (N,), the pixels' surface points
     (P, 3), their values (N, 3, P) and which of them are usable (N, 3, P; 1 or 0), and
-    whether the gains' gradient is fitted with the pixels' mean slope held at none
-    (``level``, :func:`_with_level`) or the gradient kept."""
+    whether the gains' gradient is fitted with the pixels' slopes' sum held where the
+    start put it (``level``, :func:`_with_level`) or the gradient kept."""
 
     lights: LightSet
     aims: Tensor
@@ -664,8 +664,8 @@ def fit_positions(
     its second-order formula after a fit that holds the pixels' numbers near their start
     (module doc). With ``shared_f0`` (``SHARED_F0`` when None) the dielectric pixels share
     one F0 in the fit. With ``level`` (``selfcal.LEVEL`` when None) the gains' gradient
-    across the dome is fitted too and the kept pixels' mean slope held at none
-    (:func:`_with_level`). ``progress`` is called with the steps done so far, of
+    across the dome is fitted too and the kept pixels' slopes' sum held where the start
+    (levelled) put it (:func:`_with_level`). ``progress`` is called with the steps done so far, of
     ``iterations`` · (1 + 2 · pairs).
 
     ``capture`` is the capture as calibrated before self-calibration, already reduced to

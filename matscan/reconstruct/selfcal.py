@@ -36,7 +36,7 @@ the albedo absorbs), as semi-calibrated photometric stereo shows. So, alternatel
    one 0.5-2.9 mm) and relit 0.8-2.0 dB worse on average over its 25 materials; without
    a gradient the two relight alike (docs/rti.md). On a handheld light's RTI capture,
    whose frame need not be the sample's, the level convention's gains can be refused
-   (docs/rti.md: rti-icon leans 9.5° in its ``.lp`` frame, and is refused as below);
+   (docs/rti.md: rti-icon leans 9.5° in its ``.lp`` frame, and is refused as below).
 
 Last, the maps are fitted once more with the gains, and if they re-render the sampled
 photos (under the lights times the gains) no better than the first fit, at the capture's
