@@ -18,7 +18,10 @@ With ``--scores DIR`` it tabulates instead the scores that ``tools/nets_unlike.p
 for several seeds of each variant (``DIR/VARIANT-sSEED.unlike.txt`` and ``.procedural.txt``,
 as ``runs/ablation-gpu/lease.sh score`` makes them): per set and variant, each score's mean
 over the light counts, averaged over the seeds, with half the seeds' range beside it (the
-noise a difference between variants must exceed).
+noise a difference between variants must exceed). ``--paired A,B`` adds, per set and score,
+each seed's difference B − A (both saw the same batches) and whether it is beyond the noise
+(the rule of runs/ablation9-gpu/README.md: one sign in every seed, and a mean above the
+largest half range over the seeds of either variant).
 """
 
 from __future__ import annotations
@@ -47,8 +50,8 @@ SCORE_LINE = re.compile(
 SCORES = ("novel", "diffuse", "specular", "roughness", "normal °")
 
 
-def seed_table(folder: Path) -> str:
-    """Markdown: per set and variant, the scores' means over the counts, mean ± half range over seeds."""
+def seed_scores(folder: Path) -> dict[tuple[str, str], dict[str, list[float]]]:
+    """Per (set, variant), per seed: each score's mean over the light counts of its score file."""
     found: dict[tuple[str, str], dict[str, list[float]]] = {}
     for path in sorted(folder.glob("*-s*.*.txt")):
         run, kind = path.name.split(".")[:2]
@@ -59,15 +62,70 @@ def seed_table(folder: Path) -> str:
         found.setdefault((kind, variant), {})[seed] = [sum(r[k] for r in rows) / len(rows) for k in range(len(SCORES))]
     if not found:
         raise SystemExit(f"{folder}: no VARIANT-sSEED.SET.txt score files")
+    return found
+
+
+def half_range(values: list[float]) -> float:
+    return (max(values) - min(values)) / 2
+
+
+def seed_table(folder: Path) -> str:
+    """Markdown: per set and variant, the scores' means over the counts, mean ± half range over seeds."""
+    found = seed_scores(folder)
     lines = ["| set | variant | seeds | " + " | ".join(SCORES) + " |", "|---|---|---:|" + "---:|" * len(SCORES)]
     for (kind, variant), seeds in sorted(found.items(), key=lambda kv: (kv[0][0], VARIANT_ORDER.index(kv[0][1]))):
         cells = []
         for k in range(len(SCORES)):
             vals = [v[k] for v in seeds.values()]
-            mean, half = sum(vals) / len(vals), (max(vals) - min(vals)) / 2
             digits = 2 if SCORES[k].endswith("°") else 4
-            cells.append(f"{mean:.{digits}f} ± {half:.{digits}f}")
+            cells.append(f"{sum(vals) / len(vals):.{digits}f} ± {half_range(vals):.{digits}f}")
         lines.append(f"| {kind} | {variant} | {len(seeds)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def paired(found: dict[tuple[str, str], dict[str, list[float]]], a: str, b: str) -> list[dict]:
+    """Each set's and score's paired differences ``b - a`` over the seeds both variants have
+    (every score is an error: positive means ``a`` is better), and whether the difference is
+    beyond the noise: one sign in every seed, and a mean larger than the largest half range
+    over the seeds of either variant's score (runs/ablation9-gpu/README.md's rule)."""
+    out = []
+    for kind in sorted({k for k, _ in found}):
+        if (kind, a) not in found or (kind, b) not in found:
+            continue
+        seeds = sorted(set(found[kind, a]) & set(found[kind, b]), key=int)
+        if len(seeds) < 2:
+            raise SystemExit(f"{kind}: {a} and {b} share fewer than two seeds; the noise needs two")
+        for k, score in enumerate(SCORES):
+            d = [found[kind, b][s][k] - found[kind, a][s][k] for s in seeds]
+            mean = sum(d) / len(d)
+            noise = max(half_range([found[kind, v][s][k] for s in seeds]) for v in (a, b))
+            one_sign = all(x > 0 for x in d) or all(x < 0 for x in d)
+            beyond = one_sign and abs(mean) > noise
+            out.append(
+                {
+                    "set": kind,
+                    "score": score,
+                    "seeds": seeds,
+                    "differences": d,
+                    "mean": mean,
+                    "noise": noise,
+                    "verdict": (f"{a} better" if mean > 0 else f"{b} better") if beyond else "inside the noise",
+                }
+            )
+    return out
+
+
+def paired_table(folder: Path, a: str, b: str) -> str:
+    rows = paired(seed_scores(folder), a, b)
+    lines = [
+        f"| set | score | {b} − {a}, per seed | mean | noise | verdict |",
+        "|---|---|---|---:|---:|---|",
+    ]
+    for r in rows:
+        digits = 2 if r["score"].endswith("°") else 4
+        per = ", ".join(f"{x:+.{digits}f}" for x in r["differences"])
+        mean, noise = f"{r['mean']:+.{digits}f}", f"{r['noise']:.{digits}f}"
+        lines.append(f"| {r['set']} | {r['score']} | {per} | {mean} | {noise} | {r['verdict']} |")
     return "\n".join(lines)
 
 
@@ -79,10 +137,19 @@ def main() -> int:
     parser.add_argument("runs", nargs="*", type=Path)
     parser.add_argument("--reference", type=Path, help="a run of the same configuration to compare `four` with")
     parser.add_argument("--scores", type=Path, help="tabulate the seeds' score files in this folder instead")
+    parser.add_argument(
+        "--paired", metavar="A,B", help="with --scores: B - A per seed, and whether it is beyond the noise"
+    )
     args = parser.parse_args()
     if args.scores is not None:
         print(seed_table(args.scores))
+        if args.paired:
+            a, b = args.paired.split(",")
+            print()
+            print(paired_table(args.scores, a, b))
         return 0
+    if args.paired:
+        parser.error("--paired needs --scores")
     if not args.runs:
         parser.error("give run folders, or --scores DIR")
 
