@@ -79,7 +79,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
-[--steps=N] [--side=N] [--seed=S]
+[--no-fallback] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
@@ -350,6 +350,8 @@ def main() -> None:
             estimator.LEVEL = True
         if a == "--no-level":  # the former convention: the LEDs without a gradient
             estimator.LEVEL = False
+        if a == "--no-fallback":  # no second estimate where the level one is refused (selfcal.FALLBACK)
+            estimator.FALLBACK = False
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     matte = "--matte" in sys.argv
     draw = next((1000 * int(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--seed=")), 0)
@@ -420,6 +422,14 @@ def main() -> None:
         ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
         plain = reconstruct_capture(cap, cfg)
         g1, record = estimate_gains(cap, cfg)
+        if "fallback" in record:  # the level convention's gains were refused (selfcal.FALLBACK)
+            rmse = record["rerender_rmse"]
+            print(
+                f"{name:16s} fallback: the level sample's gains refused (RMSE {record['fallback']['rerender_rmse']:.5f}"
+                f" against {rmse['before']:.5f}); without a gradient {rmse['after']:.5f}, "
+                + ("refused too" if "rejected" in record else "kept"),
+                flush=True,
+            )
         gains_only = reconstruct_capture(with_gains(cap, g1), cfg)
         if "--joint" in sys.argv and not record["updated"]:  # as reconstruct does: the rig file's places
             report(f"{name} *", nominal.position, true, maps, rig, (ideal, plain, gains_only, gains_only))
@@ -428,7 +438,7 @@ def main() -> None:
             variants(name, cap, g1, cfg, maps, true, gains, rig)
             continue
         if "--joint" in sys.argv:  # what reconstruct --self-calibrate-positions runs
-            lights, g2, _, _ = estimate_positions(cap, g1, cfg)
+            lights, g2, _, _ = estimate_positions(cap, g1, cfg, level=record["convention"] == "level sample")
             both = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
             report(name, lights.position, true, maps, rig, (ideal, plain, gains_only, both))
             if "--split" in sys.argv:  # which of the two, positions or gains, the relighting follows

@@ -380,7 +380,8 @@ def reconstruct_capture(
         elif cfg.self_calibrate_positions:
             from matscan.reconstruct.lightpos import estimate_positions
 
-            lights, gains, record["positions"], notes = estimate_positions(capture, gains, cfg, progress)
+            level = record["convention"] == "level sample"
+            lights, gains, record["positions"], notes = estimate_positions(capture, gains, cfg, progress, level)
             if lights is not None:
                 capture = replace(capture, lights=lights)
         seconds = time.perf_counter() - t0
@@ -401,8 +402,16 @@ def reconstruct_capture(
                 "right scales cost up to 0.01 dB on average and 0.08 dB at most on simulated domes (docs/rti.md): "
                 "self-calibrate only if the lights have changed since"
             )
+        before, after = record["rerender_rmse"]["before"], record["rerender_rmse"]["after"]
+        if "fallback" in record:
+            tried = record["fallback"]["rerender_rmse"]
+            result.warnings.append(
+                f"--self-calibrate: the intensities that take the sample as lying level re-render the photos no "
+                f"better than the capture's own (RMSE {tried:.4g} against {before:.4g}): the lights' frame may not "
+                "be the sample's (a handheld light's); estimated again for a dome without a brightness gradient"
+                + ("" if "rejected" in record else f", they are kept (RMSE {after:.4g})")
+            )
         if "rejected" in record:
-            before, after = record["rerender_rmse"]["before"], record["rerender_rmse"]["after"]
             result.warnings.append(
                 f"--self-calibrate: the intensities estimated from the photos re-render them no better than the "
                 f"capture's own (RMSE {after:.4g} against {before:.4g}), which are kept: they were right already, or "

@@ -773,7 +773,7 @@ def _sig4(v: float) -> float:
 
 
 def estimate_positions(
-    capture: Capture, gains: Tensor, cfg: ReconstructConfig, progress: bool = False
+    capture: Capture, gains: Tensor, cfg: ReconstructConfig, progress: bool = False, level: bool | None = None
 ) -> tuple[LightSet | None, Tensor, dict[str, Any], list[str]]:
     """The photos' lights with the near lights where the photos place them, new gains
     (N, 3), a record and warnings, for a capture whose intensities were self-calibrated
@@ -783,7 +783,8 @@ def estimate_positions(
     start the joint fit are the ``lm`` solver's from flat maps, on every ``factor``-th
     pixel (``POSITION_SIDE``). Without near lights, or where the capture gives each
     photo's geometry (a flash rig: measured on domes only), the lights are returned as
-    None and the gains unchanged."""
+    None and the gains unchanged. ``level``: the gains' convention (the intensities'
+    record's ``convention`` is "level sample"); by default :func:`selfcal.fits_gradient`'s."""
     from matscan.reconstruct.job import SELF_CALIBRATION_OFF, reconstruct_capture
     from matscan.reconstruct.selfcal import gauged, reduced, with_gains
 
@@ -806,7 +807,7 @@ def estimate_positions(
     fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, **SELF_CALIBRATION_OFF)
     start = reconstruct_capture(with_gains(small, gains), fit_cfg, None)
     shared = cfg.shared_f0 or SHARED_F0
-    level = selfcal.fits_gradient(capture, cfg)
+    level = selfcal.fits_gradient(capture, cfg) if level is None else level
     steps = SHARED_ITERATIONS if cfg.shared_f0 else ITERATIONS
     total = steps * (1 + 2 * BIAS_PAIRS + (1 if shared else 0))  # the shared F0's second start
     with tqdm(total=total, desc="positions", unit="step", disable=not progress, leave=False) as bar:

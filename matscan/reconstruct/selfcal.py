@@ -116,6 +116,12 @@ ROUND_SIDE = 128
 #: True since it passed its rule on three draws of bench/nearcal.py's dome, with the
 #: LEDs' own gradients and without (docs/rti.md).
 LEVEL = True
+#: Where the level convention's gains are refused (they re-render the photos no better than
+#: the capture's own intensities) and ``led_gradient`` is "auto", the rounds run once more
+#: under the convention of no gradient, whose gains are kept if they pass the same check
+#: (the record's ``fallback``). A capture whose frame is not the sample's (a handheld
+#: light's, docs/rti.md) breaks the level convention, not the other.
+FALLBACK = True
 
 
 def reduced(capture: Capture, factor: int) -> Capture:
@@ -144,8 +150,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     """Per-photo RGB gains (N, 3) of a capture (module doc) and a record: the gains by
     photo, how many photos the last round could read, whether any round updated the
     gains, and the re-rendering RMSE of the sampled pixels before and after."""
-    from matscan.reconstruct.job import SELF_CALIBRATION_OFF, reconstruct_capture
-    from matscan.reconstruct.solver import rerender_error
+    from matscan.reconstruct.job import SELF_CALIBRATION_OFF
 
     n = len(capture.files)
     if n < MIN_PHOTOS:
@@ -159,16 +164,52 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     lm = replace(cfg.lm, prior_roughness=cfg.lm.prior_roughness * ROUGHNESS_HOLD)
     level = fits_gradient(capture, cfg)
     fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, lm=lm, **SELF_CALIBRATION_OFF)
+    gains, read, updated, before, after = _rounds(small, fit_cfg, level, rounds)
+    worse = updated and after >= before
+    fallback = None
+    if worse and level and cfg.led_gradient == "auto" and FALLBACK:
+        fallback = {"from": "level sample", "rerender_rmse": round(after, 6)}
+        gains, read, updated, _, after = _rounds(small, fit_cfg, False, rounds)
+        level, worse = False, updated and after >= before
+    if worse:  # the estimate explains the photos no better than the capture's own intensities
+        gains, updated = torch.ones(n, 3), False
+    record = {
+        "light_gains": {f: [round(float(v), 5) for v in g] for f, g in zip(capture.files, gains, strict=True)},
+        "rounds": rounds,
+        "photos_read": int(read.sum()),  # in the last round
+        "updated": updated,
+        "reduced_by": factor,
+        "convention": "level sample" if level else "no gradient",  # what fixed the gains' gradient
+        "rerender_rmse": {"before": round(before, 6), "after": round(after, 6)},
+    }
+    if fallback is not None:
+        record["fallback"] = fallback
+    if worse:
+        record["rejected"] = "the estimated intensities re-render the photos no better than the capture's own"
+    return gains, record
+
+
+def _rounds(
+    small: Capture, fit_cfg: ReconstructConfig, level: bool, rounds: int
+) -> tuple[Tensor, Tensor, bool, float, float]:
+    """The alternation of the module doc under one convention (``level``) on the reduced
+    capture: the gains, which photos the last round read, whether any round updated the
+    gains, and the re-rendering RMSE of the first fit (at the capture's own intensities)
+    and of a fit with the gains."""
+    from matscan.reconstruct.job import reconstruct_capture
+    from matscan.reconstruct.solver import rerender_error
+
+    n = len(small.files)
     gains = torch.ones(n, 3)
-    history = []
+    before = None
     updated = False
     for _ in range(rounds):
         update = torch.ones(n, 3)
         read = torch.zeros(n, dtype=torch.bool)
         cap = with_gains(small, gains)
         res = reconstruct_capture(cap, fit_cfg, None)
-        if not history:
-            history.append(rerender_error(res.maps, cap, list(range(n)), res.intensity_scale))
+        if before is None:
+            before = rerender_error(res.maps, cap, list(range(n)), res.intensity_scale)
         shown = levelled(res.maps) if level else res.maps
         matte = MapSet(**{**shown.present(), "specular": torch.zeros_like(shown.specular)})
         for i in range(n):
@@ -188,22 +229,7 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
         else:
             updated = True
         gains = gauged(gains * update.clamp(0.2, 5.0), small.lights, level)
-    history.append(_fit_error(small, gains, fit_cfg))
-    worse = updated and history[-1] >= history[0]
-    if worse:  # the estimate explains the photos no better than the capture's own intensities
-        gains, updated = torch.ones(n, 3), False
-    record = {
-        "light_gains": {f: [round(float(v), 5) for v in g] for f, g in zip(capture.files, gains, strict=True)},
-        "rounds": rounds,
-        "photos_read": int(read.sum()),  # in the last round
-        "updated": updated,
-        "reduced_by": factor,
-        "convention": "level sample" if level else "no gradient",  # what fixed the gains' gradient
-        "rerender_rmse": {"before": round(history[0], 6), "after": round(history[-1], 6)},
-    }
-    if worse:
-        record["rejected"] = "the estimated intensities re-render the photos no better than the capture's own"
-    return gains, record
+    return gains, read, updated, float(before), _fit_error(small, gains, fit_cfg)
 
 
 def fits_gradient(capture: Capture, cfg: ReconstructConfig) -> bool:
