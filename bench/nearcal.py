@@ -275,12 +275,14 @@ def bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: Camera
     return float(photos_alone.trace() / n) ** 0.5, float(with_prior.trace() / n) ** 0.5
 
 
-def variants(name: str, cap: Capture, g1: torch.Tensor, cfg, maps: MapSet, true: LightSet, gains, rig) -> None:
+def variants(
+    name: str, cap: Capture, g1: torch.Tensor, cfg, maps: MapSet, true: LightSet, gains, rig, level: bool
+) -> None:
     """The joint fit run as ``estimate_positions`` runs it, then scored four ways: its end
     (the bias left in), the pair's correction applied to the positions and log gains (as
     ``BIAS_PAIRS`` does), to the positions alone and to the gains alone: positions' mean
     error (mm), the gains' RMS error (%, their overall factor and tilt removed) and the
-    novel-light PSNR (dB)."""
+    novel-light PSNR (dB). ``level``: the intensities' convention (their record's)."""
     debiased, got = lightpos._debiased, {}
 
     def spy(photos, fit, pairs, iterations, progress=None):
@@ -290,14 +292,14 @@ def variants(name: str, cap: Capture, g1: torch.Tensor, cfg, maps: MapSet, true:
 
     lightpos._debiased = spy
     try:
-        estimate_positions(cap, g1, cfg)
+        estimate_positions(cap, g1, cfg, level=level)
     finally:
         lightpos._debiased = debiased
     fit = got["fit"]
     scores = []
     for pos, lg in ((fit.pos, fit.lg), (got["pos"], got["lg"]), (got["pos"], fit.lg), (fit.pos, got["lg"])):
         lights = lightpos._lit_from(cap, pos.float()).lights
-        g = estimator.gauged(lg.exp().float(), cap.lights, estimator.LEVEL)
+        g = estimator.gauged(lg.exp().float(), cap.lights, level)
         res = reconstruct_capture(with_gains(replace(cap, lights=lights), g), cfg)
         off = (g / gains).log()
         off = off - off.mean(0)
@@ -427,7 +429,7 @@ def main() -> None:
             print(
                 f"{name:16s} fallback: the level sample's gains refused (RMSE {record['fallback']['rerender_rmse']:.5f}"
                 f" against {rmse['before']:.5f}); without a gradient {rmse['after']:.5f}, "
-                + ("refused too" if "rejected" in record else "kept"),
+                + ("kept" if record["updated"] else "refused too" if "rejected" in record else "unread"),
                 flush=True,
             )
         gains_only = reconstruct_capture(with_gains(cap, g1), cfg)
@@ -435,7 +437,7 @@ def main() -> None:
             report(f"{name} *", nominal.position, true, maps, rig, (ideal, plain, gains_only, gains_only))
             continue
         if "--variants" in sys.argv:  # the pair's correction applied in parts (with --steps=30 --pairs=1)
-            variants(name, cap, g1, cfg, maps, true, gains, rig)
+            variants(name, cap, g1, cfg, maps, true, gains, rig, record["convention"] == "level sample")
             continue
         if "--joint" in sys.argv:  # what reconstruct --self-calibrate-positions runs
             lights, g2, _, _ = estimate_positions(cap, g1, cfg, level=record["convention"] == "level sample")

@@ -820,7 +820,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --self-calibrate: what fixes the LEDs' brightness gradient from one side of the dome to the "
         "other, which a tilted sample photographs like: fit (the sample lies level), none (the LEDs have no "
         "gradient; the sample's tilt is fitted), auto (the default: fit, but none where the calibration scales "
-        "every light, as a grey card measures them); on simulated domes with LEDs ±20%% at random, fit relit "
+        "every light, as a grey card measures them, and none again where fit's intensities are refused); "
+        "on simulated domes with LEDs ±20%% at random, fit relit "
         "0.8-2.0 dB better on average than none (docs/rti.md)",
     )
     p.add_argument(

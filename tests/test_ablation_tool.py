@@ -29,8 +29,8 @@ SCORES = {
 }
 
 
-def write_scores(folder: Path, kind: str) -> None:
-    for variant, seeds in SCORES.items():
+def write_scores(folder: Path, kind: str, scores=SCORES) -> None:
+    for variant, seeds in scores.items():
         for seed, (novel, diffuse, specular, roughness, normal) in enumerate(seeds):
             # two light counts whose mean is the seed's score
             lines = [
@@ -56,10 +56,31 @@ def test_paired_verdicts_follow_the_rule(tmp_path):
     assert rows["normal °"]["verdict"] == "inside the noise"  # no difference at all
 
 
-def test_paired_needs_two_shared_seeds(tmp_path):
+def test_paired_needs_the_same_two_seeds_or_more(tmp_path):
     tool = load_tool()
     write_scores(tmp_path, "unlike")
-    for seed in (1, 2):
-        (tmp_path / f"no_global_skip-s{seed}.unlike.txt").unlink()
+    (tmp_path / "no_global_skip-s2.unlike.txt").unlink()
+    with pytest.raises(SystemExit, match="not paired"):
+        tool.paired(tool.seed_scores(tmp_path), "four", "no_global_skip")
+    for name in ("four-s2", "four-s1", "no_global_skip-s1"):
+        (tmp_path / f"{name}.unlike.txt").unlink()
     with pytest.raises(SystemExit, match="fewer than two seeds"):
         tool.paired(tool.seed_scores(tmp_path), "four", "no_global_skip")
+
+
+def test_the_noise_is_the_larger_variants_half_range(tmp_path):
+    """One sign in every seed, and a mean (0.0047) above ``four``'s half range (0.001) but
+    below ``no_global_skip``'s (0.005): inside the noise. A variant's typo is refused."""
+    tool = load_tool()
+    scores = {
+        "four": [(0.050, 0.1, 0.1, 0.2, 5.0), (0.051, 0.1, 0.1, 0.2, 5.0), (0.052, 0.1, 0.1, 0.2, 5.0)],
+        "no_global_skip": [(0.053, 0.1, 0.1, 0.2, 5.0), (0.052, 0.1, 0.1, 0.2, 5.0), (0.062, 0.1, 0.1, 0.2, 5.0)],
+    }
+    write_scores(tmp_path, "unlike", scores)
+    rows = {r["score"]: r for r in tool.paired(tool.seed_scores(tmp_path), "four", "no_global_skip")}
+    assert rows["novel"]["differences"] == pytest.approx([0.003, 0.001, 0.010])
+    assert rows["novel"]["noise"] == pytest.approx(0.005)
+    assert rows["novel"]["mean"] == pytest.approx(0.014 / 3)
+    assert rows["novel"]["verdict"] == "inside the noise"
+    with pytest.raises(SystemExit, match="no set has scores of both"):
+        tool.paired(tool.seed_scores(tmp_path), "four", "no_global_skp")

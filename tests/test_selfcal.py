@@ -96,13 +96,14 @@ def test_a_level_sample_gives_a_brightness_gradient_back():
     assert record["convention"] == "no gradient"
 
 
-def test_a_tilted_sample_falls_back_to_no_gradient():
+def test_a_tilted_sample_falls_back_to_no_gradient(monkeypatch):
     """A painted sample tilted 10° about y (every normal turned), photographed exactly
     (clipped at 1, clipped pixels marked saturated: docs/rti.md's pilot) under LEDs ±20%
     without a gradient: taken as level, the tilt becomes a gradient whose
     gains re-render the photos worse than equal intensities, so they are refused; the
     second estimate, for a dome without a gradient, passes the check and comes back
-    within 2% of the true gains (measured 1.9%; selfcal.FALLBACK)."""
+    within 2% of the true gains (measured 1.9%; selfcal.FALLBACK). Without the fallback
+    the capture's own intensities are kept."""
     maps = generate("painted", 64, 1)
     t = math.radians(10.0)
     turn = torch.tensor([[math.cos(t), 0.0, math.sin(t)], [0.0, 1.0, 0.0], [-math.sin(t), 0.0, math.cos(t)]])
@@ -114,11 +115,52 @@ def test_a_tilted_sample_falls_back_to_no_gradient():
     cap = Capture(
         RIG, RIG.field_mm, "linear", photos, (photos >= 1).any(1, keepdim=True), tuple(range(24)), lights, files
     )
-    est, record = estimate_gains(cap, ReconstructConfig(model="none", refine="on", self_calibrate=True))
-    assert record["fallback"]["from"] == "level sample"
-    assert record["fallback"]["rerender_rmse"] >= record["rerender_rmse"]["before"]  # the level gains: refused
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True)
+    with monkeypatch.context() as m:
+        m.setattr(selfcal, "FALLBACK", False)
+        alone, record = estimate_gains(cap, cfg)
+    assert record["convention"] == "level sample" and "rejected" in record and "fallback" not in record
+    torch.testing.assert_close(alone, torch.ones(24, 3), atol=0, rtol=0)
+    est, record = estimate_gains(cap, cfg)
+    assert record["fallback"] == {"from": "level sample", "rerender_rmse": record["fallback"]["rerender_rmse"]}
     assert record["convention"] == "no gradient" and record["updated"] is True and "rejected" not in record
     assert float((est / gains - 1).abs().max()) < 0.02
+
+
+@pytest.mark.parametrize("kept", [True, False])
+def test_the_positions_and_warnings_follow_the_fallback(monkeypatch, kept):
+    """After a fallback the positions are fitted under the convention kept (no gradient),
+    and the warnings say which estimate was kept: the second, or the capture's own when
+    both were refused. The estimates are stand-ins; the job's handling is what is tested."""
+    from matscan.reconstruct import lightpos
+
+    record = {
+        "updated": kept,
+        "photos_read": 24,
+        "convention": "no gradient",
+        "rerender_rmse": {"before": 0.05, "after": 0.03 if kept else 0.06},
+        "fallback": {"from": "level sample", "rerender_rmse": 0.07},
+    }
+    if not kept:
+        record["rejected"] = "the estimated intensities re-render the photos no better than the capture's own"
+    seen = {}
+
+    def positions(capture, gains, cfg, progress=False, level=None):
+        seen["level"] = level
+        return None, gains, {"near_lights": 24}, []
+
+    monkeypatch.setattr(selfcal, "estimate_gains", lambda capture, cfg: (torch.ones(24, 3), dict(record)))
+    monkeypatch.setattr(lightpos, "estimate_positions", positions)
+    cap = _exact_capture(generate("paper", 32, 1), torch.ones(24, 3))
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=kept)
+    res = reconstruct_capture(cap, cfg)
+    assert seen == ({"level": False} if kept else {})
+    said = [w for w in res.warnings if w.startswith("--self-calibrate:")]
+    assert "RMSE 0.07 against 0.05" in said[0] and "without a brightness gradient" in said[0]
+    if kept:
+        assert said[0].endswith("they are kept (RMSE 0.03)") and len(said) == 1
+    else:
+        assert "no better either (RMSE 0.06 against 0.05)" in said[1] and len(said) == 2
 
 
 def test_the_gradient_needs_the_intensities():

@@ -92,9 +92,11 @@ def paired(found: dict[tuple[str, str], dict[str, list[float]]], a: str, b: str)
     for kind in sorted({k for k, _ in found}):
         if (kind, a) not in found or (kind, b) not in found:
             continue
-        seeds = sorted(set(found[kind, a]) & set(found[kind, b]), key=int)
+        seeds = sorted(found[kind, a], key=int)
+        if seeds != sorted(found[kind, b], key=int):
+            raise SystemExit(f"{kind}: {a} has seeds {seeds}, {b} {sorted(found[kind, b], key=int)}: not paired")
         if len(seeds) < 2:
-            raise SystemExit(f"{kind}: {a} and {b} share fewer than two seeds; the noise needs two")
+            raise SystemExit(f"{kind}: {a} and {b} have fewer than two seeds; the noise needs two")
         for k, score in enumerate(SCORES):
             d = [found[kind, b][s][k] - found[kind, a][s][k] for s in seeds]
             mean = sum(d) / len(d)
@@ -112,6 +114,9 @@ def paired(found: dict[tuple[str, str], dict[str, list[float]]], a: str, b: str)
                     "verdict": (f"{a} better" if mean > 0 else f"{b} better") if beyond else "inside the noise",
                 }
             )
+    if not out:
+        variants = sorted({v for _, v in found})
+        raise SystemExit(f"--paired {a},{b}: no set has scores of both (variants found: {', '.join(variants)})")
     return out
 
 
@@ -144,7 +149,9 @@ def main() -> int:
     if args.scores is not None:
         print(seed_table(args.scores))
         if args.paired:
-            a, b = args.paired.split(",")
+            a, _, b = args.paired.partition(",")
+            if not a or not b or "," in b:
+                parser.error(f"--paired: {args.paired!r} is not two variants joined by a comma")
             print()
             print(paired_table(args.scores, a, b))
         return 0

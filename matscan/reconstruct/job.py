@@ -91,7 +91,8 @@ class ReconstructConfig:
     # what fixes the self-calibrated gains' gradient across the dome, which a tilted sample
     # photographs like (selfcal.fits_gradient): "fit" (the sample lies level, the gradient is
     # fitted), "none" (the LEDs have none), "auto" (selfcal.LEVEL's choice, "none" where the
-    # capture's calibration scales every light); other than "auto" needs self_calibrate
+    # capture's calibration scales every light, and "none" again where the level gains are
+    # refused, selfcal.FALLBACK); other than "auto" needs self_calibrate
     led_gradient: str = "auto"
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
@@ -409,9 +410,14 @@ def reconstruct_capture(
                 f"--self-calibrate: the intensities that take the sample as lying level re-render the photos no "
                 f"better than the capture's own (RMSE {tried:.4g} against {before:.4g}): the lights' frame may not "
                 "be the sample's (a handheld light's); estimated again for a dome without a brightness gradient"
-                + ("" if "rejected" in record else f", they are kept (RMSE {after:.4g})")
+                + (f", they are kept (RMSE {after:.4g})" if record["updated"] else "")
             )
-        if "rejected" in record:
+        if "rejected" in record and "fallback" in record:
+            result.warnings.append(
+                f"--self-calibrate: estimated without a gradient, the intensities re-render the photos no better "
+                f"either (RMSE {after:.4g} against {before:.4g}); the capture's own are kept"
+            )
+        elif "rejected" in record:
             result.warnings.append(
                 f"--self-calibrate: the intensities estimated from the photos re-render them no better than the "
                 f"capture's own (RMSE {after:.4g} against {before:.4g}), which are kept: they were right already, or "

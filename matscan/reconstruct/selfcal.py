@@ -36,7 +36,9 @@ the albedo absorbs), as semi-calibrated photometric stereo shows. So, alternatel
    one 0.5-2.9 mm) and relit 0.8-2.0 dB worse on average over its 25 materials; without
    a gradient the two relight alike (docs/rti.md). On a handheld light's RTI capture,
    whose frame need not be the sample's, the level convention's gains can be refused
-   (docs/rti.md: rti-icon leans 9.5° in its ``.lp`` frame, and is refused as below).
+   (below; rti-icon leans 9.5° in its ``.lp`` frame): with ``led_gradient`` "auto" the
+   rounds then run once more without a gradient (``FALLBACK``), and those gains face the
+   same check.
 
 Last, the maps are fitted once more with the gains, and if they re-render the sampled
 photos (under the lights times the gains) no better than the first fit, at the capture's
@@ -149,7 +151,9 @@ def with_gains(capture: Capture, gains: Tensor) -> Capture:
 def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUNDS) -> tuple[Tensor, dict[str, Any]]:
     """Per-photo RGB gains (N, 3) of a capture (module doc) and a record: the gains by
     photo, how many photos the last round could read, whether any round updated the
-    gains, and the re-rendering RMSE of the sampled pixels before and after."""
+    gains, the convention that fixed their gradient, the re-rendering RMSE of the sampled
+    pixels before and after, where the level convention's gains were refused the
+    ``fallback`` (their RMSE), and where the gains kept are the capture's own, ``rejected``."""
     from matscan.reconstruct.job import SELF_CALIBRATION_OFF
 
     n = len(capture.files)
