@@ -79,7 +79,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
-[--no-fallback] [--steps=N] [--side=N] [--seed=S]
+[--no-fallback] [--gains-only] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
@@ -421,6 +421,19 @@ def main() -> None:
             print(f"{name:16s} {float((pos - true.position).norm(dim=1).mean()):12.2f}", flush=True)
             continue
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
+        if "--gains-only" in sys.argv:  # which estimates are kept, refused or taken by the fallback
+            g1, record = estimate_gains(cap, cfg)
+            off = (g1 / gains).log()
+            off = float((off - off.mean(0)).square().mean().sqrt()) * 100
+            rmse = record["rerender_rmse"]
+            print(
+                f"{name:16s} {record['convention']:13s} updated {record['updated']!s:5s} "
+                f"rejected {'rejected' in record!s:5s} fallback "
+                + (f"{record['fallback']['rerender_rmse']:.5f}" if "fallback" in record else "-      ")
+                + f"  RMSE {rmse['before']:.5f} -> {rmse['after']:.5f}  gains' RMS error {off:.2f}%",
+                flush=True,
+            )
+            continue
         ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
         plain = reconstruct_capture(cap, cfg)
         g1, record = estimate_gains(cap, cfg)
