@@ -79,7 +79,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
-[--no-fallback] [--gains-only] [--steps=N] [--side=N] [--seed=S]
+[--no-fallback] [--gains-only] [--tilt=DEG] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
@@ -91,6 +91,7 @@ from dataclasses import replace
 
 import torch
 
+from matscan.anyrig import tilted
 from matscan.capture import Capture
 from matscan.capture.folder import Correction
 from matscan.capture.virtual import CameraModel, simulate_images
@@ -376,8 +377,10 @@ def main() -> None:
     nominal = rig.light_set()
     t0 = time.perf_counter()
     truth_noise = None
-    gradient = 0.0
+    gradient = tilt = 0.0
     for a in sys.argv[1:]:
+        if a.startswith("--tilt="):  # degrees
+            tilt = float(a.split("=", 1)[1])
         if a.startswith("--gradient="):  # the LEDs' log brightness rises by this per unit of x direction
             gradient = float(a.split("=", 1)[1])
     for a in sys.argv[1:]:
@@ -396,6 +399,8 @@ def main() -> None:
             continue
         if matte:
             maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
+        if tilt:  # the sample lies tilted toward +x, which the level convention takes as a gradient
+            maps = MapSet(**{**maps.present(), "normal": tilted(maps.normal, tilt, 0.0)})
         gains = led_gains(100 + i + draw, gradient="--drawn-gradient" in sys.argv)
         if gradient:  # brighter toward +x across the dome, which the self-calibration takes as none
             gains = gains * torch.exp(gradient * nominal.position[:, :1] / nominal.position.norm(dim=1, keepdim=True))
