@@ -79,7 +79,8 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
-[--no-fallback] [--gains-only] [--tilt=DEG] [--steps=N] [--side=N] [--seed=S]
+[--no-fallback] [--gains-only] [--tilt=DEG] [--choose]
+[--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
@@ -373,6 +374,8 @@ def main() -> None:
         materials += [("gravel (photo)", photo_material("gravel", size))]
         materials += [(f"{n} (artist)", artist_material(n, size)) for n in ("foil-print", "black-leather", "lacquer")]
     cfg = ReconstructConfig(model="none", refine="on", solver="lm")
+    if "--choose" in sys.argv:  # both conventions, the better re-rendering kept (led_gradient "choose")
+        cfg = replace(cfg, self_calibrate=True, led_gradient="choose")
     rig = builtin_rig("dome24")
     nominal = rig.light_set()
     t0 = time.perf_counter()

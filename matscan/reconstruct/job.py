@@ -57,7 +57,7 @@ SELF_CALIBRATION_OFF = {
     "led_gradient": "auto",
 }
 #: ``ReconstructConfig.led_gradient``'s values (selfcal.fits_gradient).
-LED_GRADIENTS = ("auto", "fit", "none")
+LED_GRADIENTS = ("auto", "fit", "none", "choose")
 SOLVERS = ("lm", "adam")
 
 
@@ -92,7 +92,9 @@ class ReconstructConfig:
     # photographs like (selfcal.fits_gradient): "fit" (the sample lies level, the gradient is
     # fitted), "none" (the LEDs have none), "auto" (selfcal.LEVEL's choice, "none" where the
     # capture's calibration scales every light, and "none" again where the level gains are
-    # refused, selfcal.FALLBACK); other than "auto" needs self_calibrate
+    # refused, selfcal.FALLBACK), "choose" (both estimated, the one that re-renders the
+    # photos better kept: a sample that may not lie level); other than "auto" needs
+    # self_calibrate
     led_gradient: str = "auto"
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
