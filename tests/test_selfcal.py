@@ -81,7 +81,8 @@ def test_a_level_sample_gives_a_brightness_gradient_back():
     toward +x (exp(0.08 x), x each LED direction's component: ±7% across the dome). Under
     the convention that the sample lies level (``led_gradient`` "fit") the gains
     come back within 1% with their gradient; under the convention that the dome has none,
-    the gradient is lost and the gains are more than 3% off."""
+    the gradient is lost and the gains are more than 3% off. "choose" keeps the level
+    convention's: its fit re-renders the photos better."""
     maps = generate("paper", 96, 1)
     maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
     d = RIG.light_set().position / RIG.light_set().position.norm(dim=1, keepdim=True)
@@ -94,6 +95,9 @@ def test_a_level_sample_gives_a_brightness_gradient_back():
     flat, record = estimate_gains(cap, replace(cfg, led_gradient="none"))
     assert float((flat / gains - 1).abs().max()) > 0.03
     assert record["convention"] == "no gradient"
+    chosen, record = estimate_gains(cap, replace(cfg, led_gradient="choose"))  # the level one re-renders better
+    assert record["convention"] == "level sample" and record["choice"]["level sample"] < record["choice"]["no gradient"]
+    torch.testing.assert_close(chosen, level, atol=0, rtol=0)
 
 
 def test_a_tilted_sample_falls_back_to_no_gradient(monkeypatch):
@@ -103,7 +107,8 @@ def test_a_tilted_sample_falls_back_to_no_gradient(monkeypatch):
     gains re-render the photos worse than equal intensities, so they are refused; the
     second estimate, for a dome without a gradient, passes the check and comes back
     within 2% of the true gains (measured 1.9%; selfcal.FALLBACK). Without the fallback
-    the capture's own intensities are kept."""
+    the capture's own intensities are kept; "choose" keeps the estimate without a gradient,
+    whose fit re-renders the photos better."""
     maps = generate("painted", 64, 1)
     t = math.radians(10.0)
     turn = torch.tensor([[math.cos(t), 0.0, math.sin(t)], [0.0, 1.0, 0.0], [-math.sin(t), 0.0, math.cos(t)]])
@@ -125,6 +130,9 @@ def test_a_tilted_sample_falls_back_to_no_gradient(monkeypatch):
     assert record["fallback"] == {"from": "level sample", "rerender_rmse": record["fallback"]["rerender_rmse"]}
     assert record["convention"] == "no gradient" and record["updated"] is True and "rejected" not in record
     assert float((est / gains - 1).abs().max()) < 0.02
+    chosen, record = estimate_gains(cap, replace(cfg, led_gradient="choose"))  # the same two estimates
+    assert record["convention"] == "no gradient" and record["choice"]["no gradient"] < record["choice"]["level sample"]
+    torch.testing.assert_close(chosen, est, atol=0, rtol=0)
 
 
 @pytest.mark.parametrize("kept", [True, False])
@@ -272,8 +280,9 @@ def test_an_estimate_that_fits_the_photos_worse_is_not_kept(monkeypatch):
     are ±5 mm off and ±20% in brightness (bench/nearcal.py's second draw): 16 of its 24
     photos show enough diffuse reflection to pass MIN_PHOTO_SHARE, but the gains read
     there fit the photos worse than the rig file's (re-rendering RMSE 0.00383 against
-    0.00342 when written), so the rig file's are kept. The estimate so refused relights
-    the true knit under novel lights 5 dB worse than the rig file's intensities do."""
+    0.00342 when written, without a gradient; the level convention's, tried first, 0.00369),
+    so the rig file's are kept. The estimate so refused relights the true knit under
+    novel lights 5 dB worse than the rig file's intensities do."""
     from matscan.capture.virtual import CameraModel, simulate_images
     from matscan.color import linear_to_srgb
     from matscan.evaluate import evaluation_lights
@@ -292,9 +301,11 @@ def test_an_estimate_that_fits_the_photos_worse_is_not_kept(monkeypatch):
     est, record = estimate_gains(cap, cfg)
     assert record["updated"] is False and "rejected" in record and record["photos_read"] >= 12
     assert record["rerender_rmse"]["after"] > record["rerender_rmse"]["before"]
+    # the level convention's estimate was refused first, and the one without a gradient too
+    assert record["fallback"]["rerender_rmse"] > record["rerender_rmse"]["before"]
     torch.testing.assert_close(est, torch.ones(24, 3), atol=0, rtol=0)
     res = reconstruct_capture(cap, replace(cfg, self_calibrate=True))
-    assert sum("re-render them no better than the capture's own" in w for w in res.warnings) == 1
+    assert sum("re-render the photos no better either" in w for w in res.warnings) == 1
 
     monkeypatch.setattr(selfcal, "_fit_error", lambda *args: 0.0)  # the check passed whatever the estimate
     refused, forced = estimate_gains(cap, cfg)
