@@ -84,8 +84,8 @@ def seed_table(folder: Path) -> str:
 
 
 def paired(found: dict[tuple[str, str], dict[str, list[float]]], a: str, b: str) -> list[dict]:
-    """Each set's and score's paired differences ``b - a`` over the seeds both variants have
-    (every score is an error: positive means ``a`` is better), and whether the difference is
+    """Each set's and score's paired differences ``b - a`` over the seeds (both variants must
+    have the same; every score is an error: positive means ``a`` is better), and whether it is
     beyond the noise: one sign in every seed, and a mean larger than the largest half range
     over the seeds of either variant's score (runs/ablation9-gpu/README.md's rule)."""
     out = []

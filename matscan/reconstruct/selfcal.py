@@ -249,12 +249,13 @@ def _rounds(
 
 def fits_gradient(capture: Capture, cfg: ReconstructConfig) -> bool:
     """Whether the self-calibration fits the gains' gradient across the dome, the sample
-    taken as lying level (``cfg.led_gradient``): "fit" yes ("choose" first), "none" no, "auto" as ``LEVEL``
-    says, but no where the capture's calibration scales every light (a grey card measured
-    the gradient: the gains then correct it, and a sample that does not lie flat keeps
-    its tilt)."""
+    taken as lying level (``cfg.led_gradient``): "fit" yes, "choose" yes first (then the
+    other, and the record says which was kept), "none" no, "auto" as ``LEVEL`` says, but
+    no where the capture's calibration scales every light (a grey card measured the
+    gradient: the gains then correct it, and a sample that does not lie flat keeps its
+    tilt)."""
     if cfg.led_gradient != "auto":
-        return cfg.led_gradient in ("fit", "choose")  # "choose": the record says which was kept
+        return cfg.led_gradient in ("fit", "choose")
     scaled = (capture.calibration or {}).get("light_scales", {})
     measured = bool(scaled) and all(k is None or str(k) in scaled for k in capture.light_indices)
     return LEVEL and not measured
