@@ -151,18 +151,29 @@ def test_curl_tells_a_surface_from_its_mirror():
 
 
 @pytest.fixture(scope="module")
-def icon_capture(tmp_path_factory):
-    out, _ = import_rti(ICON, tmp_path_factory.mktemp("rti") / "cap")
-    return out
+def icon_half(tmp_path_factory):
+    """The real capture at half its photos' size (2 × 2 means, 201 × 198; re-encoded as
+    JPEG at quality 95): a quarter of the solver's time, the same conclusions (below)."""
+    from PIL import Image
+
+    half = tmp_path_factory.mktemp("rti") / "half"
+    half.mkdir()
+    (half / "dirs.lp").write_bytes((ICON / "dirs.lp").read_bytes())
+    for photo in sorted(ICON.glob("*.jpg")):
+        with Image.open(photo) as image:
+            image.reduce(2).save(half / photo.name, quality=95)
+    return half
 
 
-def test_icon_leave_out_validation_beats_hsh(icon_capture, tmp_path):
+def test_icon_leave_out_validation_beats_hsh(icon_half, tmp_path):
     """Every 4th photo of the real capture held out (18 of 72): the solver's maps relight
-    them better than an order-2 HSH fit to the same 54 photos (docs/rti.md)."""
+    them better than an order-2 HSH fit to the same 54 photos (docs/rti.md gives the full
+    size's numbers; at half size 29.7 against 22.6 dB, SSIM 0.935 against 0.902 when written)."""
     from matscan.reconstruct import ReconstructConfig
     from matscan.reconstruct.job import reconstruct
 
-    rec = reconstruct(icon_capture, tmp_path / "out", ReconstructConfig(validate=18))
+    capture, _ = import_rti(icon_half, tmp_path / "cap")
+    rec = reconstruct(capture, tmp_path / "out", ReconstructConfig(validate=18))
     val = rec["validation"]
     assert val["left_out"][:3] == ["image03.jpg", "image07.jpg", "image11.jpg"]
     assert val["psnr_left_out"] > val["hsh"]["psnr_left_out"] + 3
@@ -171,12 +182,13 @@ def test_icon_leave_out_validation_beats_hsh(icon_capture, tmp_path):
     assert (tmp_path / "out" / "report.html").is_file()
 
 
-def test_icon_y_convention_by_curl(icon_capture, tmp_path):
+def test_icon_y_convention_by_curl(icon_half, tmp_path):
     """Both readings of the file's y relight equally well; the default gives the normal
-    field with less curl (LP_Y_DEFAULT)."""
+    field with less curl (LP_Y_DEFAULT): 1.13 against 1.67 when written, as at full size."""
     from matscan.reconstruct.job import reconstruct_capture
 
-    down, _ = import_rti(ICON, tmp_path / "down", y="down")
-    res_up = reconstruct_capture(load_capture(icon_capture))
+    up, _ = import_rti(icon_half, tmp_path / "up")
+    down, _ = import_rti(icon_half, tmp_path / "down", y="down")
+    res_up = reconstruct_capture(load_capture(up))
     res_down = reconstruct_capture(load_capture(down))
     assert normal_curl(res_up.maps.normal) < 0.9 * normal_curl(res_down.maps.normal)
