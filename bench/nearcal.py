@@ -71,6 +71,12 @@ noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone.
 with the bias left in, the pair's correction on positions and gains (``BIAS_PAIRS``), on
 the positions alone and on the gains alone.
 
+``--versus-choose`` compares, per material, ``reconstruct --self-calibrate-positions``
+under ``--led-gradient auto`` (the level convention, with its fallback) and ``choose``
+(both conventions, the better re-rendering kept): the convention each kept, and where the
+two kept different intensities the final novel-light PSNR of each beside the ideal
+dome's (where they kept the same, the reconstruction is the same and is not run).
+
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
 noise; the materials stay the same); 0, the default, is the draw of the tables in docs/rti.md.
@@ -79,7 +85,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
-[--no-fallback] [--gains-only] [--tilt=DEG] [--choose]
+[--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose]
 [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
@@ -318,6 +324,33 @@ def mean_slope(maps: MapSet) -> tuple[float, float]:
     return float((n[0] / n[2]).mean()), float((n[1] / n[2]).mean())
 
 
+def versus_choose(name: str, cap: Capture, cfg: ReconstructConfig, maps: MapSet, true: LightSet, gains, rig) -> None:
+    """``--versus-choose``: the intensities under ``led_gradient`` "auto" and "choose" and,
+    where they differ, both reconstructions with the positions fitted, as reconstruct does."""
+    ends = {}
+    for way in ("auto", "choose"):
+        g1, record = estimate_gains(cap, replace(cfg, self_calibrate=True, led_gradient=way))
+        kept = record["convention"] if record["updated"] else "none read"
+        ends[way] = (g1, record, kept + (" (fallback)" if "fallback" in record else ""))
+    (ga, _, ka), (gc, _, kc) = ends["auto"], ends["choose"]
+    line = f"{name:16s} auto {ka:24s} choose {kc:14s}"
+    if torch.equal(ga, gc):
+        print(f"{line} same intensities", flush=True)
+        return
+    psnr = []
+    for g1, record, _ in (ends["auto"], ends["choose"]):
+        capture = cap
+        if record["updated"]:  # as reconstruct does: the positions fitted under the kept convention
+            lights, g1, _, _ = estimate_positions(cap, g1, cfg, level=record["convention"] == "level sample")
+            capture = replace(cap, lights=lights)
+        fit = reconstruct_capture(with_gains(capture, g1), cfg)
+        psnr.append(novel_psnr(fit.maps, fit.intensity_scale, maps, rig.field_mm))
+    ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
+    best = novel_psnr(ideal.maps, ideal.intensity_scale, maps, rig.field_mm)
+    gap = psnr[1] - psnr[0]
+    print(f"{line} PSNR ideal {best:6.2f} auto {psnr[0]:6.2f} choose {psnr[1]:6.2f} ({gap:+.2f})", flush=True)
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -393,6 +426,8 @@ def main() -> None:
         print(f"{'material':16s} {'pos err mean':>12s}   (mm, the joint fit started at the true lights and maps)")
     elif "--variants" in sys.argv:
         print(f"{'material':16s} (mm, gains %, dB): bias left in  |  pair on both  |  on positions  |  on gains")
+    elif "--versus-choose" in sys.argv:
+        print(f"{'material':16s} the conventions kept and, where they differ, the final novel-light PSNR (dB)")
     elif "--bound" in sys.argv:
         print(f"{'material':16s} {'photos alone':>12s} {'+ rig file':>12s}   (RMS position error of the bound, mm)")
     else:
@@ -441,6 +476,9 @@ def main() -> None:
                 + f"  RMSE {rmse['before']:.5f} -> {rmse['after']:.5f}  gains' RMS error {off:.2f}%",
                 flush=True,
             )
+            continue
+        if "--versus-choose" in sys.argv:
+            versus_choose(name, cap, cfg, maps, true, gains, rig)
             continue
         ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
         plain = reconstruct_capture(cap, cfg)
