@@ -75,7 +75,8 @@ the positions alone and on the gains alone.
 under ``--led-gradient auto`` (the level convention, with its fallback) and ``choose``
 (both conventions, the better re-rendering kept): the convention each kept, and where the
 two kept different intensities the final novel-light PSNR of each beside the ideal
-dome's (where they kept the same, the reconstruction is the same and is not run).
+dome's (where they kept the same, the reconstruction is the same and is not run), and
+the re-rendering RMSE of each convention's estimate, which ``choose`` compared.
 
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
@@ -332,8 +333,9 @@ def versus_choose(name: str, cap: Capture, cfg: ReconstructConfig, maps: MapSet,
         g1, record = estimate_gains(cap, replace(cfg, self_calibrate=True, led_gradient=way))
         kept = record["convention"] if record["updated"] else "none read"
         ends[way] = (g1, record, kept + (" (fallback)" if "fallback" in record else ""))
-    (ga, _, ka), (gc, _, kc) = ends["auto"], ends["choose"]
-    line = f"{name:16s} auto {ka:24s} choose {kc:14s}"
+    (ga, _, ka), (gc, rc, kc) = ends["auto"], ends["choose"]
+    rmse = rc["choice"]  # each convention's re-rendering RMSE, the numbers choose compared
+    line = f"{name:16s} auto {ka:24s} choose {kc:14s} (RMSE {rmse['level sample']:.5f} / {rmse['no gradient']:.5f})"
     if torch.equal(ga, gc):
         print(f"{line} same intensities", flush=True)
         return
