@@ -475,7 +475,12 @@ def main() -> None:
                 f"{name:16s} {record['convention']:13s} updated {record['updated']!s:5s} "
                 f"rejected {'rejected' in record!s:5s} fallback "
                 + (f"{record['fallback']['rerender_rmse']:.5f}" if "fallback" in record else "-      ")
-                + f"  RMSE {rmse['before']:.5f} -> {rmse['after']:.5f}  gains' RMS error {off:.2f}%",
+                + f"  RMSE {rmse['before']:.5f} -> {rmse['after']:.5f}  gains' RMS error {off:.2f}%"
+                + (
+                    f"  choice {record['choice']['level sample']:.5f} / {record['choice']['no gradient']:.5f}"
+                    if "choice" in record
+                    else ""
+                ),
                 flush=True,
             )
             continue
