@@ -821,9 +821,9 @@ def build_parser() -> argparse.ArgumentParser:
         "other, which a tilted sample photographs like: fit (the sample lies level), none (the LEDs have no "
         "gradient; the sample's tilt is fitted), auto (the default: fit, but none where the calibration scales "
         "every light, as a grey card measures them, and none again where fit's intensities are refused), choose "
-        "(both, the one that re-renders the photos better kept: for a sample that may not lie level, twice the "
-        "time); on simulated domes with LEDs ±20%% at random, fit relit 0.8-2.0 dB better on average than none, "
-        "and on samples tilted 5° its intensities were 10%% off where none's were 3%% (docs/rti.md)",
+        "(both, the one that re-renders the photos better kept, none only if by 1%%: for a sample that may not "
+        "lie level, twice the time); on simulated domes with LEDs ±20%% at random, fit relit 0.8-2.0 dB better on "
+        "average than none, and on samples tilted 5° up to 22 dB worse (docs/rti.md)",
     )
     p.add_argument(
         "--validate",

@@ -135,6 +135,26 @@ def test_a_tilted_sample_falls_back_to_no_gradient(monkeypatch):
     torch.testing.assert_close(chosen, est, atol=0, rtol=0)
 
 
+@pytest.mark.parametrize(("no_gradient", "kept"), [(0.00995, "level sample"), (0.0098, "no gradient")])
+def test_choose_keeps_the_level_estimate_unless_the_other_is_clearly_better(monkeypatch, no_gradient, kept):
+    """``choose`` keeps the estimate without a gradient only where its fit re-renders the
+    photos at least ``CHOOSE_MARGIN`` (1%) better than the level one's (0.01): 0.5% better
+    is a tie, which goes to the level convention; 2% better is kept. The two estimates are
+    stand-ins (each convention's gains a constant); the choice is what is tested."""
+    assert selfcal.CHOOSE_MARGIN == 0.01
+
+    def rounds(small, fit_cfg, level, count):
+        gains = torch.full((24, 3), 1.0 if level else 2.0)
+        return gains, torch.ones(24, dtype=torch.bool), True, 0.05, 0.01 if level else no_gradient
+
+    monkeypatch.setattr(selfcal, "_rounds", rounds)
+    cap = _exact_capture(generate("paper", 16, 1), torch.ones(24, 3))
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, led_gradient="choose")
+    gains, record = estimate_gains(cap, cfg)
+    assert record["convention"] == kept and record["choice"] == {"level sample": 0.01, "no gradient": no_gradient}
+    assert float(gains[0, 0]) == (1.0 if kept == "level sample" else 2.0)
+
+
 @pytest.mark.parametrize("kept", [True, False])
 def test_the_positions_and_warnings_follow_the_fallback(monkeypatch, kept):
     """After a fallback the positions are fitted under the convention kept (no gradient),
