@@ -131,9 +131,10 @@ FALLBACK = True
 #: re-renders the photos at least this share better than the level convention's; else the
 #: level one, the default convention. The two tie where the photos cannot tell a tilt from
 #: a gradient, and a tie went the wrong way: level samples relit 3.66, 0.84 and 0.13 dB
-#: worse (leather, gravel, paper). Over bench/nearcal.py's draws 0-2 the 65 samples tilted
-#: 5° whose estimate without a gradient re-rendered better did so by 1.1% at least, the 150
-#: level ones where it did by 0-25% (chosen there, not yet checked on other draws: docs/rti.md).
+#: worse (leather, gravel, paper). Over bench/nearcal.py's draws 0-2, on the 65 samples
+#: tilted 5° where the estimate without a gradient re-rendered better it did so by 1.1% or
+#: more; on the 30 of 150 level ones where it did, by 0-25%, 18 of them by under 1% (chosen
+#: there, not yet checked on other draws: docs/rti.md).
 CHOOSE_MARGIN = 0.01
 
 
