@@ -72,7 +72,8 @@ with the bias left in, the pair's correction on positions and gains (``BIAS_PAIR
 the positions alone and on the gains alone.
 
 ``--versus-choose`` compares, per material, ``reconstruct --self-calibrate-positions``
-under ``--led-gradient auto`` (the level convention, with its fallback) and ``choose``
+under ``--led-gradient auto`` as it was before ``selfcal.CHOOSE`` (the level convention,
+with its fallback) and ``choose``
 (both conventions, the better re-rendering kept): the convention each kept, and where the
 two kept different intensities the final novel-light PSNR of each beside the ideal
 dome's (where they kept the same, the reconstruction is the same and is not run), and
@@ -329,10 +330,12 @@ def versus_choose(name: str, cap: Capture, cfg: ReconstructConfig, maps: MapSet,
     """``--versus-choose``: the intensities under ``led_gradient`` "auto" and "choose" and,
     where they differ, both reconstructions with the positions fitted, as reconstruct does."""
     ends = {}
+    was, estimator.CHOOSE = estimator.CHOOSE, False  # "auto" as before selfcal.CHOOSE: level, with its fallback
     for way in ("auto", "choose"):
         g1, record = estimate_gains(cap, replace(cfg, self_calibrate=True, led_gradient=way))
         kept = record["convention"] if record["updated"] else "none read"
         ends[way] = (g1, record, kept + (" (fallback)" if "fallback" in record else ""))
+    estimator.CHOOSE = was
     (ga, _, ka), (gc, rc, kc) = ends["auto"], ends["choose"]
     rmse = rc["choice"]  # each convention's re-rendering RMSE, the numbers choose compared
     line = f"{name:16s} auto {ka:24s} choose {kc:14s} (RMSE {rmse['level sample']:.5f} / {rmse['no gradient']:.5f})"

@@ -107,8 +107,8 @@ def test_a_tilted_sample_falls_back_to_no_gradient(monkeypatch):
     gains re-render the photos worse than equal intensities, so they are refused; the
     second estimate, for a dome without a gradient, passes the check and comes back
     within 2% of the true gains (measured 1.9%; selfcal.FALLBACK). Without the fallback
-    the capture's own intensities are kept; "choose" keeps the estimate without a gradient,
-    whose fit re-renders the photos better."""
+    the capture's own intensities are kept; "choose", and "auto" since selfcal.CHOOSE,
+    keep the estimate without a gradient, whose fit re-renders the photos better."""
     maps = generate("painted", 64, 1)
     t = math.radians(10.0)
     turn = torch.tensor([[math.cos(t), 0.0, math.sin(t)], [0.0, 1.0, 0.0], [-math.sin(t), 0.0, math.cos(t)]])
@@ -121,6 +121,7 @@ def test_a_tilted_sample_falls_back_to_no_gradient(monkeypatch):
         RIG, RIG.field_mm, "linear", photos, (photos >= 1).any(1, keepdim=True), tuple(range(24)), lights, files
     )
     cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True)
+    monkeypatch.setattr(selfcal, "CHOOSE", False)  # "auto" as it was: the level convention, then the fallback
     with monkeypatch.context() as m:
         m.setattr(selfcal, "FALLBACK", False)
         alone, record = estimate_gains(cap, cfg)
@@ -133,15 +134,21 @@ def test_a_tilted_sample_falls_back_to_no_gradient(monkeypatch):
     chosen, record = estimate_gains(cap, replace(cfg, led_gradient="choose"))  # the same two estimates
     assert record["convention"] == "no gradient" and record["choice"]["no gradient"] < record["choice"]["level sample"]
     torch.testing.assert_close(chosen, est, atol=0, rtol=0)
+    monkeypatch.setattr(selfcal, "CHOOSE", True)
+    auto, record = estimate_gains(cap, cfg)  # both conventions at once: no fallback needed
+    assert record["convention"] == "no gradient" and "choice" in record and "fallback" not in record
+    torch.testing.assert_close(auto, est, atol=0, rtol=0)
 
 
+@pytest.mark.parametrize("way", ["choose", "auto"])
 @pytest.mark.parametrize(("no_gradient", "kept"), [(0.00995, "level sample"), (0.0098, "no gradient")])
-def test_choose_keeps_the_level_estimate_unless_the_other_is_clearly_better(monkeypatch, no_gradient, kept):
-    """``choose`` keeps the estimate without a gradient only where its fit re-renders the
-    photos at least ``CHOOSE_MARGIN`` (1%) better than the level one's (0.01): 0.5% better
-    is a tie, which goes to the level convention; 2% better is kept. The two estimates are
-    stand-ins (each convention's gains a constant); the choice is what is tested."""
-    assert selfcal.CHOOSE_MARGIN == 0.01
+def test_choose_keeps_the_level_estimate_unless_the_other_is_clearly_better(monkeypatch, no_gradient, kept, way):
+    """``choose``, and ``auto`` where it takes the sample as level (``CHOOSE``), keeps the
+    estimate without a gradient only where its fit re-renders the photos at least
+    ``CHOOSE_MARGIN`` (1%) better than the level one's (0.01): 0.5% better is a tie, which
+    goes to the level convention; 2% better is kept. The two estimates are stand-ins (each
+    convention's gains a constant); the choice is what is tested."""
+    assert selfcal.CHOOSE_MARGIN == 0.01 and selfcal.CHOOSE is True
 
     def rounds(small, fit_cfg, level, count):
         gains = torch.full((24, 3), 1.0 if level else 2.0)
@@ -149,10 +156,13 @@ def test_choose_keeps_the_level_estimate_unless_the_other_is_clearly_better(monk
 
     monkeypatch.setattr(selfcal, "_rounds", rounds)
     cap = _exact_capture(generate("paper", 16, 1), torch.ones(24, 3))
-    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, led_gradient="choose")
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, led_gradient=way)
     gains, record = estimate_gains(cap, cfg)
     assert record["convention"] == kept and record["choice"] == {"level sample": 0.01, "no gradient": no_gradient}
     assert float(gains[0, 0]) == (1.0 if kept == "level sample" else 2.0)
+    if way == "auto":  # where the dome is taken as without a gradient there is nothing to choose
+        gains, record = estimate_gains(cap, replace(cfg, led_gradient="none"))
+        assert record["convention"] == "no gradient" and "choice" not in record and float(gains[0, 0]) == 2.0
 
 
 @pytest.mark.parametrize("kept", [True, False])
@@ -189,6 +199,36 @@ def test_the_positions_and_warnings_follow_the_fallback(monkeypatch, kept):
         assert said[0].endswith("they are kept (RMSE 0.03)") and len(said) == 1
     else:
         assert "no better either (RMSE 0.06 against 0.05)" in said[1] and len(said) == 2
+
+
+def test_a_choice_of_no_gradient_is_said_and_followed(monkeypatch):
+    """Where ``auto`` compared both conventions (``CHOOSE``) and kept the estimate without
+    a gradient, the positions are fitted under that convention and a warning says why,
+    with both RMSEs. The estimate is a stand-in; the job's handling is what is tested."""
+    from matscan.reconstruct import lightpos
+
+    record = {
+        "updated": True,
+        "photos_read": 24,
+        "convention": "no gradient",
+        "rerender_rmse": {"before": 0.05, "after": 0.02},
+        "choice": {"level sample": 0.04, "no gradient": 0.02},
+    }
+    seen = {}
+
+    def positions(capture, gains, cfg, progress=False, level=None):
+        seen["level"] = level
+        return None, gains, {"near_lights": 24}, []
+
+    monkeypatch.setattr(selfcal, "estimate_gains", lambda capture, cfg: (torch.ones(24, 3), dict(record)))
+    monkeypatch.setattr(lightpos, "estimate_positions", positions)
+    cap = _exact_capture(generate("paper", 32, 1), torch.ones(24, 3))
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
+    said = [w for w in reconstruct_capture(cap, cfg).warnings if w.startswith("--self-calibrate:")]
+    assert seen == {"level": False} and len(said) == 1
+    assert "(RMSE 0.02) than those that take the sample as lying level (0.04)" in said[0]
+    said = reconstruct_capture(cap, replace(cfg, led_gradient="choose")).warnings  # asked for: nothing to say
+    assert not [w for w in said if w.startswith("--self-calibrate:")]
 
 
 def test_the_gradient_needs_the_intensities():
@@ -321,7 +361,9 @@ def test_an_estimate_that_fits_the_photos_worse_is_not_kept(monkeypatch):
     est, record = estimate_gains(cap, cfg)
     assert record["updated"] is False and "rejected" in record and record["photos_read"] >= 12
     assert record["rerender_rmse"]["after"] > record["rerender_rmse"]["before"]
-    # the level convention's estimate was refused first, and the one without a gradient too
+    # the level convention's estimate was kept by the choice (selfcal.CHOOSE), then refused, and
+    # the one without a gradient, already made for the choice, too
+    assert record["choice"]["level sample"] < record["choice"]["no gradient"] == record["rerender_rmse"]["after"]
     assert record["fallback"]["rerender_rmse"] > record["rerender_rmse"]["before"]
     torch.testing.assert_close(est, torch.ones(24, 3), atol=0, rtol=0)
     res = reconstruct_capture(cap, replace(cfg, self_calibrate=True))

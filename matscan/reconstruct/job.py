@@ -90,11 +90,11 @@ class ReconstructConfig:
     shared_f0: bool = False
     # what fixes the self-calibrated gains' gradient across the dome, which a tilted sample
     # photographs like (selfcal.fits_gradient): "fit" (the sample lies level, the gradient is
-    # fitted), "none" (the LEDs have none), "auto" (selfcal.LEVEL's choice, "none" where the
-    # capture's calibration scales every light, and "none" again where the level gains are
-    # refused, selfcal.FALLBACK), "choose" (both estimated, the one that re-renders the
-    # photos better kept: a sample that may not lie level); other than "auto" needs
-    # self_calibrate
+    # fitted), "none" (the LEDs have none), "choose" (both estimated, the one that re-renders
+    # the photos better kept: a sample that may not lie level), "auto" ("choose" as
+    # selfcal.LEVEL and CHOOSE say, "none" where the capture's calibration scales every
+    # light; where the level gains are kept but refused, the other's, selfcal.FALLBACK);
+    # other than "auto" needs self_calibrate
     led_gradient: str = "auto"
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
@@ -406,6 +406,14 @@ def reconstruct_capture(
                 "self-calibrate only if the lights have changed since"
             )
         before, after = record["rerender_rmse"]["before"], record["rerender_rmse"]["after"]
+        chose = record.get("choice", {})
+        if cfg.led_gradient == "auto" and chose and record["convention"] == "no gradient" and record["updated"]:
+            result.warnings.append(
+                f"--self-calibrate: the intensities estimated for a dome without a brightness gradient re-render "
+                f"the photos better (RMSE {chose['no gradient']:.4g}) than those that take the sample as lying "
+                f"level ({chose['level sample']:.4g}), and are kept: the sample may not lie level, or the lights' "
+                "frame is not the sample's (a handheld light's)"
+            )
         if "fallback" in record:
             tried = record["fallback"]["rerender_rmse"]
             result.warnings.append(
