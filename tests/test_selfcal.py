@@ -165,22 +165,12 @@ def test_choose_keeps_the_level_estimate_unless_the_other_is_clearly_better(monk
         assert record["convention"] == "no gradient" and "choice" not in record and float(gains[0, 0]) == 2.0
 
 
-@pytest.mark.parametrize("kept", [True, False])
-def test_the_positions_and_warnings_follow_the_fallback(monkeypatch, kept):
-    """After a fallback the positions are fitted under the convention kept (no gradient),
-    and the warnings say which estimate was kept: the second, or the capture's own when
-    both were refused. The estimates are stand-ins; the job's handling is what is tested."""
+def _job_with(monkeypatch, record: dict, cfg: ReconstructConfig) -> tuple[dict, list[str]]:
+    """The job run with a stand-in estimate of the intensities (equal gains and ``record``)
+    and of the positions: the convention the positions were asked to fit under, and the
+    self-calibration's warnings."""
     from matscan.reconstruct import lightpos
 
-    record = {
-        "updated": kept,
-        "photos_read": 24,
-        "convention": "no gradient",
-        "rerender_rmse": {"before": 0.05, "after": 0.03 if kept else 0.06},
-        "fallback": {"from": "level sample", "rerender_rmse": 0.07},
-    }
-    if not kept:
-        record["rejected"] = "the estimated intensities re-render the photos no better than the capture's own"
     seen = {}
 
     def positions(capture, gains, cfg, progress=False, level=None):
@@ -190,10 +180,27 @@ def test_the_positions_and_warnings_follow_the_fallback(monkeypatch, kept):
     monkeypatch.setattr(selfcal, "estimate_gains", lambda capture, cfg: (torch.ones(24, 3), dict(record)))
     monkeypatch.setattr(lightpos, "estimate_positions", positions)
     cap = _exact_capture(generate("paper", 32, 1), torch.ones(24, 3))
-    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=kept)
     res = reconstruct_capture(cap, cfg)
+    return seen, [w for w in res.warnings if w.startswith("--self-calibrate:")]
+
+
+@pytest.mark.parametrize("kept", [True, False])
+def test_the_positions_and_warnings_follow_the_fallback(monkeypatch, kept):
+    """After a fallback the positions are fitted under the convention kept (no gradient),
+    and the warnings say which estimate was kept: the second, or the capture's own when
+    both were refused. The estimates are stand-ins; the job's handling is what is tested."""
+    record = {
+        "updated": kept,
+        "photos_read": 24,
+        "convention": "no gradient",
+        "rerender_rmse": {"before": 0.05, "after": 0.03 if kept else 0.06},
+        "fallback": {"from": "level sample", "rerender_rmse": 0.07},
+    }
+    if not kept:
+        record["rejected"] = "the estimated intensities re-render the photos no better than the capture's own"
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=kept)
+    seen, said = _job_with(monkeypatch, record, cfg)
     assert seen == ({"level": False} if kept else {})
-    said = [w for w in res.warnings if w.startswith("--self-calibrate:")]
     assert "RMSE 0.07 against 0.05" in said[0] and "without a brightness gradient" in said[0]
     if kept:
         assert said[0].endswith("they are kept (RMSE 0.03)") and len(said) == 1
@@ -204,9 +211,8 @@ def test_the_positions_and_warnings_follow_the_fallback(monkeypatch, kept):
 def test_a_choice_of_no_gradient_is_said_and_followed(monkeypatch):
     """Where ``auto`` compared both conventions (``CHOOSE``) and kept the estimate without
     a gradient, the positions are fitted under that convention and a warning says why,
-    with both RMSEs. The estimate is a stand-in; the job's handling is what is tested."""
-    from matscan.reconstruct import lightpos
-
+    with both RMSEs; asked for (``choose``), it goes unsaid. The estimate is a stand-in;
+    the job's handling is what is tested."""
     record = {
         "updated": True,
         "photos_read": 24,
@@ -214,21 +220,12 @@ def test_a_choice_of_no_gradient_is_said_and_followed(monkeypatch):
         "rerender_rmse": {"before": 0.05, "after": 0.02},
         "choice": {"level sample": 0.04, "no gradient": 0.02},
     }
-    seen = {}
-
-    def positions(capture, gains, cfg, progress=False, level=None):
-        seen["level"] = level
-        return None, gains, {"near_lights": 24}, []
-
-    monkeypatch.setattr(selfcal, "estimate_gains", lambda capture, cfg: (torch.ones(24, 3), dict(record)))
-    monkeypatch.setattr(lightpos, "estimate_positions", positions)
-    cap = _exact_capture(generate("paper", 32, 1), torch.ones(24, 3))
     cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
-    said = [w for w in reconstruct_capture(cap, cfg).warnings if w.startswith("--self-calibrate:")]
+    seen, said = _job_with(monkeypatch, record, cfg)
     assert seen == {"level": False} and len(said) == 1
     assert "(RMSE 0.02) than those that take the sample as lying level (0.04)" in said[0]
-    said = reconstruct_capture(cap, replace(cfg, led_gradient="choose")).warnings  # asked for: nothing to say
-    assert not [w for w in said if w.startswith("--self-calibrate:")]
+    seen, said = _job_with(monkeypatch, record, replace(cfg, led_gradient="choose"))
+    assert seen == {"level": False} and said == []
 
 
 def test_the_gradient_needs_the_intensities():
