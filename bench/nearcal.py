@@ -79,6 +79,12 @@ two kept different intensities the final novel-light PSNR of each beside the ide
 dome's (where they kept the same, the reconstruction is the same and is not run), and
 the re-rendering RMSE of each convention's estimate, which ``choose`` compared.
 
+``--slopes`` estimates the intensities under each convention alone and prints their
+re-rendering RMSEs, the ratio ``choose`` compares (none / level), and the length of the
+gradient across the dome (``selfcal.gradient``) of the level estimate's gains beside the
+true gains': whether a tilt read as a gradient stands out from the LEDs' own, to break
+the ties ``CHOOSE_MARGIN`` leaves to the level convention.
+
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
 noise; the materials stay the same); 0, the default, is the draw of the tables in docs/rti.md.
@@ -87,7 +93,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
-[--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose]
+[--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose] [--slopes]
 [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
@@ -356,6 +362,27 @@ def versus_choose(name: str, cap: Capture, cfg: ReconstructConfig, maps: MapSet,
     print(f"{line} PSNR ideal {best:6.2f} auto {psnr[0]:6.2f} choose {psnr[1]:6.2f} ({gap:+.2f})", flush=True)
 
 
+def slopes(name: str, cap: Capture, cfg: ReconstructConfig, gains: torch.Tensor, tilt: float) -> None:
+    """``--slopes``: the intensities estimated under each convention alone ("fit", "none"),
+    their re-rendering RMSEs and ratio (none / level, what ``choose`` compares), and the
+    gradient across the dome (``selfcal.gradient``'s length, mean over channels) of the
+    level estimate's gains and of the true ones: a tilt the level convention reads as a
+    gradient, beside the LEDs' own."""
+
+    def length(g: torch.Tensor) -> float:
+        return float(estimator.gradient(g, cap.lights).norm(dim=0).mean())
+
+    ends = [estimate_gains(cap, replace(cfg, self_calibrate=True, led_gradient=w)) for w in ("fit", "none")]
+    (gl, rl), (_, rn) = ends
+    a, b = rl["rerender_rmse"]["after"], rn["rerender_rmse"]["after"]
+    read = f"{length(gl):.4f}" if rl["updated"] else "-     "
+    print(
+        f"{name:16s} tilt {tilt:3.1f} RMSE level {a:.5f} none {b:.5f} ratio {b / a:.4f}  "
+        f"gradient level {read} true {length(gains):.4f}",
+        flush=True,
+    )
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -433,6 +460,8 @@ def main() -> None:
         print(f"{'material':16s} (mm, gains %, dB): bias left in  |  pair on both  |  on positions  |  on gains")
     elif "--versus-choose" in sys.argv:
         print(f"{'material':16s} the conventions kept and, where they differ, the final novel-light PSNR (dB)")
+    elif "--slopes" in sys.argv:
+        print(f"{'material':16s} each convention's re-rendering RMSE; the level gains' gradient and the true one")
     elif "--bound" in sys.argv:
         print(f"{'material':16s} {'photos alone':>12s} {'+ rig file':>12s}   (RMS position error of the bound, mm)")
     else:
@@ -469,6 +498,9 @@ def main() -> None:
             print(f"{name:16s} {float((pos - true.position).norm(dim=1).mean()):12.2f}", flush=True)
             continue
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
+        if "--slopes" in sys.argv:  # each convention's estimate, and the level one's gradient
+            slopes(name, cap, cfg, gains, tilt)
+            continue
         if "--gains-only" in sys.argv:  # which estimates are kept, refused or taken by the fallback
             g1, record = estimate_gains(cap, cfg)
             off = (g1 / gains).log()

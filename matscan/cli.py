@@ -822,8 +822,8 @@ def build_parser() -> argparse.ArgumentParser:
         "gradient; the sample's tilt is fitted), choose (both, the one that re-renders the photos better kept, "
         "none only if by 1%%), auto (the default: choose, but none where the calibration scales every light, as a "
         "grey card measures them); on simulated domes with LEDs ±20%% at random, fit relit 0.8-2.0 dB better on "
-        "average than none, and on samples tilted 5° up to 22 dB worse; choose as well as fit on level samples "
-        "and 0.4-22 dB better than fit on tilted ones, at twice the time (docs/rti.md)",
+        "average than none, and on samples tilted 5° up to 22 dB worse; choose within 0.15 dB of fit on level "
+        "samples and 0.4-22 dB better where they differed on tilted ones, at twice the time (docs/rti.md)",
     )
     p.add_argument(
         "--validate",

@@ -41,10 +41,13 @@ def _capture(tmp_path, maps, gains, name="cap", noise=0.002):
 
 
 def test_without_tilt_removes_a_gradient_and_the_mean_exactly():
+    """Gains made of an overall factor and a gradient along the lights' directions (x, y):
+    ``gradient`` reads that gradient back, and ``without_tilt`` removes it and the factor."""
     d = RIG.light_set().position / 225.0
     a, b, c = torch.tensor([0.1, -0.2, 0.3]), torch.tensor([0.15, 0.0, -0.1]), torch.tensor([-0.05, 0.2, 0.0])
     tilted = torch.exp(a + d[:, :1] * b + d[:, 1:2] * c)  # (24, 3): a gradient and an overall factor only
     torch.testing.assert_close(without_tilt(tilted, RIG.light_set()), torch.ones(24, 3), atol=1e-6, rtol=0)
+    torch.testing.assert_close(selfcal.gradient(tilted, RIG.light_set()), torch.stack([b, c]), atol=1e-6, rtol=0)
     gains = _gains()
     torch.testing.assert_close(without_tilt(gains * tilted, RIG.light_set()), gains, atol=1e-5, rtol=0)
     assert torch.allclose(gains.log().mean(0), torch.zeros(3), atol=1e-6)

@@ -136,8 +136,8 @@ FALLBACK = True
 #: worse (leather, gravel, paper). Over bench/nearcal.py's draws 0-2, on the 65 samples
 #: tilted 5° where the estimate without a gradient re-rendered better it did so by 1.1% or
 #: more; on the 30 of 150 level ones where it did, by 0-25%, 18 of them by under 1% (chosen
-#: there; on draws 3 and 4, level, it let 3 of 100 choices through, within ±0.15 dB:
-#: docs/rti.md).
+#: there; on draws 3 and 4, level, 3 of 100 estimates kept the other convention, which
+#: relit them within ±0.15 dB: docs/rti.md).
 CHOOSE_MARGIN = 0.01
 #: Where ``led_gradient`` is "auto" and the level convention applies (:func:`fits_gradient`),
 #: both conventions run, as under "choose" (at twice the time): the level convention's
@@ -315,13 +315,24 @@ def without_tilt(gains: Tensor, lights: LightSet) -> Tensor:
     capture were off by a cosine of the LED azimuth, ±9%). The sample lies flat on the
     stage, so the tilt is taken as none, and the dome's LEDs as having no brightness
     gradient from one side to the other that a flat target would not show."""
-    d = lights.position / lights.position.norm(dim=-1, keepdim=True)
-    design = torch.stack([torch.ones(len(d)), d[:, 0], d[:, 1]], dim=1).double()  # (N, 3)
-    log = gains.log().double()
-    coef = torch.linalg.lstsq(design, log).solution  # (3, 3): constant, x, y per channel
-    log = log - design[:, 1:] @ coef[1:]
+    design, coef = _linear_part(gains, lights)
+    log = gains.log().double() - design[:, 1:] @ coef[1:]
     log = log - log.mean(dim=0, keepdim=True)
     return log.exp().float()
+
+
+def gradient(gains: Tensor, lights: LightSet) -> Tensor:
+    """The gains' gradient across the dome (2, 3): the slope of their logarithm along the
+    lights' horizontal directions x and y, per channel (what :func:`without_tilt` removes)."""
+    return _linear_part(gains, lights)[1][1:].float()
+
+
+def _linear_part(gains: Tensor, lights: LightSet) -> tuple[Tensor, Tensor]:
+    """The design [1, x, y] of the lights' unit directions (N, 3) and the least-squares
+    coefficients (3, 3) of the gains' logarithm on it (constant, x, y; per channel)."""
+    d = lights.position / lights.position.norm(dim=-1, keepdim=True)
+    design = torch.stack([torch.ones(len(d)), d[:, 0], d[:, 1]], dim=1).double()
+    return design, torch.linalg.lstsq(design, gains.log().double()).solution
 
 
 def _fit_error(capture: Capture, gains: Tensor, cfg: ReconstructConfig) -> float:
