@@ -79,6 +79,10 @@ two kept different intensities the final novel-light PSNR of each beside the ide
 dome's (where they kept the same, the reconstruction is the same and is not run), and
 the re-rendering RMSE of each convention's estimate, which ``choose`` compared.
 
+``--versus-tie=G`` compares in the same way ``auto`` without a tie-breaker and with
+``selfcal.TIE_GRADIENT`` G: where the two re-renderings tie within ``CHOOSE_MARGIN``, the
+estimate without a gradient kept if the level gains' gradient is at least G.
+
 ``--slopes`` estimates the intensities under each convention alone and prints their
 re-rendering RMSEs, the ratio ``choose`` compares (none / level), and the length of the
 gradient across the dome (``selfcal.gradient``) of the level estimate's gains beside the
@@ -93,7 +97,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
-[--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose] [--slopes]
+[--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose] [--versus-tie=G] [--slopes]
 [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
@@ -332,24 +336,40 @@ def mean_slope(maps: MapSet) -> tuple[float, float]:
     return float((n[0] / n[2]).mean()), float((n[1] / n[2]).mean())
 
 
-def versus_choose(name: str, cap: Capture, cfg: ReconstructConfig, maps: MapSet, true: LightSet, gains, rig) -> None:
-    """``--versus-choose``: the intensities under ``led_gradient`` "auto" and "choose" and,
-    where they differ, both reconstructions with the positions fitted, as reconstruct does."""
-    ends = {}
-    was, estimator.CHOOSE = estimator.CHOOSE, False  # "auto" as before selfcal.CHOOSE: level, with its fallback
-    for way in ("auto", "choose"):
-        g1, record = estimate_gains(cap, replace(cfg, self_calibrate=True, led_gradient=way))
+def versus(name: str, cap: Capture, cfg: ReconstructConfig, maps: MapSet, true: LightSet, gains, rig, sides) -> None:
+    """``--versus-choose`` and ``--versus-tie``: the intensities of two ways (``sides``, a
+    name for each with its ``led_gradient`` and the selfcal settings it runs under) and,
+    where they differ, both reconstructions with the positions fitted, as reconstruct does.
+    Each convention's rounds run once and serve both ways (they are deterministic)."""
+    ends, rounds, real = {}, {}, estimator._rounds
+
+    def once(small, fit_cfg, level, count):
+        if level not in rounds:
+            rounds[level] = real(small, fit_cfg, level, count)
+        return rounds[level]
+
+    for side, (way, settings) in sides.items():
+        was = {k: getattr(estimator, k) for k in settings}
+        for k, v in {**settings, "_rounds": once}.items():
+            setattr(estimator, k, v)
+        try:
+            g1, record = estimate_gains(cap, replace(cfg, self_calibrate=True, led_gradient=way))
+        finally:
+            for k, v in {**was, "_rounds": real}.items():
+                setattr(estimator, k, v)
         kept = record["convention"] if record["updated"] else "none read"
-        ends[way] = (g1, record, kept + (" (fallback)" if "fallback" in record else ""))
-    estimator.CHOOSE = was
-    (ga, _, ka), (gc, rc, kc) = ends["auto"], ends["choose"]
-    rmse = rc["choice"]  # each convention's re-rendering RMSE, the numbers choose compared
-    line = f"{name:16s} auto {ka:24s} choose {kc:14s} (RMSE {rmse['level sample']:.5f} / {rmse['no gradient']:.5f})"
-    if torch.equal(ga, gc):
+        ends[side] = (g1, record, kept + (" (fallback)" if "fallback" in record else ""))
+    (a, (ga, _, ka)), (b, (gb, rb, kb)) = ends.items()
+    rmse = rb["choice"]  # each convention's re-rendering RMSE, the numbers compared, and the level gradient
+    line = (
+        f"{name:16s} {a} {ka:24s} {b} {kb:14s} (RMSE {rmse['level sample']:.5f} / {rmse['no gradient']:.5f}, "
+        f"gradient {rmse['level gradient']:.3f})"
+    )
+    if torch.equal(ga, gb):
         print(f"{line} same intensities", flush=True)
         return
     psnr = []
-    for g1, record, _ in (ends["auto"], ends["choose"]):
+    for g1, record, _ in ends.values():
         capture = cap
         if record["updated"]:  # as reconstruct does: the positions fitted under the kept convention
             lights, g1, _, _ = estimate_positions(cap, g1, cfg, level=record["convention"] == "level sample")
@@ -359,7 +379,7 @@ def versus_choose(name: str, cap: Capture, cfg: ReconstructConfig, maps: MapSet,
     ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
     best = novel_psnr(ideal.maps, ideal.intensity_scale, maps, rig.field_mm)
     gap = psnr[1] - psnr[0]
-    print(f"{line} PSNR ideal {best:6.2f} auto {psnr[0]:6.2f} choose {psnr[1]:6.2f} ({gap:+.2f})", flush=True)
+    print(f"{line} PSNR ideal {best:6.2f} {a} {psnr[0]:6.2f} {b} {psnr[1]:6.2f} ({gap:+.2f})", flush=True)
 
 
 def slopes(name: str, cap: Capture, cfg: ReconstructConfig, gains: torch.Tensor, tilt: float) -> None:
@@ -451,6 +471,7 @@ def main() -> None:
             tilt = float(a.split("=", 1)[1])
         if a.startswith("--gradient="):  # the LEDs' log brightness rises by this per unit of x direction
             gradient = float(a.split("=", 1)[1])
+    tie = next((float(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--versus-tie=")), None)
     for a in sys.argv[1:]:
         if a.startswith("--from-truth"):
             truth_noise = float(a.split("=", 1)[1]) if "=" in a else 0.0
@@ -458,7 +479,7 @@ def main() -> None:
         print(f"{'material':16s} {'pos err mean':>12s}   (mm, the joint fit started at the true lights and maps)")
     elif "--variants" in sys.argv:
         print(f"{'material':16s} (mm, gains %, dB): bias left in  |  pair on both  |  on positions  |  on gains")
-    elif "--versus-choose" in sys.argv:
+    elif "--versus-choose" in sys.argv or tie is not None:
         print(f"{'material':16s} the conventions kept and, where they differ, the final novel-light PSNR (dB)")
     elif "--slopes" in sys.argv:
         print(f"{'material':16s} each convention's re-rendering RMSE; the level gains' gradient and the true one")
@@ -519,8 +540,13 @@ def main() -> None:
                 flush=True,
             )
             continue
-        if "--versus-choose" in sys.argv:
-            versus_choose(name, cap, cfg, maps, true, gains, rig)
+        if "--versus-choose" in sys.argv:  # "auto" as before selfcal.CHOOSE (level, with its fallback) and "choose"
+            sides = {"auto": ("auto", {"CHOOSE": False}), "choose": ("choose", {})}
+            versus(name, cap, cfg, maps, true, gains, rig, sides)
+            continue
+        if tie is not None:  # "auto" with and without the tie-breaker
+            sides = {"margin": ("auto", {"TIE_GRADIENT": None}), "tie": ("auto", {"TIE_GRADIENT": tie})}
+            versus(name, cap, cfg, maps, true, gains, rig, sides)
             continue
         ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
         plain = reconstruct_capture(cap, cfg)

@@ -161,11 +161,43 @@ def test_choose_keeps_the_level_estimate_unless_the_other_is_clearly_better(monk
     cap = _exact_capture(generate("paper", 16, 1), torch.ones(24, 3))
     cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, led_gradient=way)
     gains, record = estimate_gains(cap, cfg)
-    assert record["convention"] == kept and record["choice"] == {"level sample": 0.01, "no gradient": no_gradient}
+    choice = {"level sample": 0.01, "no gradient": no_gradient, "level gradient": 0.0}  # constant gains: none
+    assert record["convention"] == kept and record["choice"] == choice
     assert float(gains[0, 0]) == (1.0 if kept == "level sample" else 2.0)
     if way == "auto":  # where the dome is taken as without a gradient there is nothing to choose
         gains, record = estimate_gains(cap, replace(cfg, led_gradient="none"))
         assert record["convention"] == "no gradient" and "choice" not in record and float(gains[0, 0]) == 2.0
+
+
+@pytest.mark.parametrize(
+    ("slope", "no_gradient", "kept"),
+    [
+        (0.2, 0.00995, "no gradient"),  # a tie, the level gains steep: a tilt read as a gradient
+        (0.2, 0.01005, "no gradient"),  # the level one 0.5% better is still a tie
+        (0.2, 0.0102, "level sample"),  # the level one 2% better is no tie
+        (0.1, 0.00995, "level sample"),  # a tie, the level gains' gradient one LEDs may have
+    ],
+)
+def test_a_tie_goes_to_no_gradient_where_the_level_gains_are_steep(monkeypatch, slope, no_gradient, kept):
+    """With ``TIE_GRADIENT`` 0.15, a tie within ``CHOOSE_MARGIN`` either way goes to the
+    estimate without a gradient where the level gains' gradient is at least 0.15 long.
+    The level gains are a stand-in rising along the lights' x direction by ``slope`` and
+    along y by none, so their gradient's length is ``slope`` exactly; the record says it."""
+    monkeypatch.setattr(selfcal, "TIE_GRADIENT", 0.15)
+    x = RIG.light_set().position[:, :1] / RIG.light_set().position.norm(dim=1, keepdim=True)
+
+    def rounds(small, fit_cfg, level, count):
+        gains = torch.exp(slope * x).expand(24, 3) if level else torch.full((24, 3), 2.0)
+        return gains, torch.ones(24, dtype=torch.bool), True, 0.05, 0.01 if level else no_gradient
+
+    monkeypatch.setattr(selfcal, "_rounds", rounds)
+    cap = _exact_capture(generate("paper", 16, 1), torch.ones(24, 3))
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, led_gradient="auto")
+    gains, record = estimate_gains(cap, cfg)
+    assert record["convention"] == kept and record["choice"]["level gradient"] == pytest.approx(slope, abs=1e-4)
+    assert (float(gains[0, 0]) == 2.0) == (kept == "no gradient")
+    monkeypatch.setattr(selfcal, "TIE_GRADIENT", None)  # without the tie-breaker a tie is the level one's
+    assert estimate_gains(cap, cfg)[1]["convention"] == "level sample"
 
 
 def _job_with(monkeypatch, record: dict, cfg: ReconstructConfig) -> tuple[dict, list[str]]:

@@ -41,8 +41,10 @@ the albedo absorbs), as semi-calibrated photometric stereo shows. So, alternatel
    ``led_gradient`` "choose", and "auto" where the level convention applies
    (``CHOOSE``), runs the rounds under both conventions and keeps the gains whose fit
    re-renders the photos better, the one without a gradient only if by
-   ``CHOOSE_MARGIN`` (the record's ``choice``), at twice the time; where the level
-   gains are kept but refused, the other's face the same check (``FALLBACK``).
+   ``CHOOSE_MARGIN`` (the record's ``choice``, with the level gains' gradient across
+   the dome, which breaks a tie where ``TIE_GRADIENT`` is set), at twice the time;
+   where the level gains are kept but refused, the other's face the same check
+   (``FALLBACK``).
 
 Last, the maps are fitted once more with the gains, and if they re-render the sampled
 photos (under the lights times the gains) no better than the first fit, at the capture's
@@ -145,6 +147,14 @@ CHOOSE_MARGIN = 0.01
 #: samples 0.4-22 dB better. True since its third rule held on draws 3 and 4 of
 #: bench/nearcal.py's dome, not used to set ``CHOOSE_MARGIN`` (docs/rti.md).
 CHOOSE = True
+#: Where the two estimates re-render the photos within ``CHOOSE_MARGIN`` of each other
+#: either way (a tie), the one without a gradient is kept if the level estimate's gains
+#: have a gradient across the dome (:func:`steepness`) of at least this: a tilt read as
+#: the LEDs' own. On draws 0, 1 and 4 of bench/nearcal.py's dome the level gains'
+#: gradient was 0.080-0.277 on samples tilted 5° and 0.005-0.142 on level ones, whose
+#: LEDs' true gradients reach 0.121; the ties the margin handed to the level convention on
+#: tilted samples were at 0.22-0.28 but one (docs/rti.md). None: off, until its rule holds.
+TIE_GRADIENT: float | None = None
 
 
 def reduced(capture: Capture, factor: int) -> Capture:
@@ -193,8 +203,9 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     choice = other = None
     if cfg.led_gradient == "choose" or (cfg.led_gradient == "auto" and level and CHOOSE):
         other = _rounds(small, fit_cfg, False, rounds)  # both conventions; the one that re-renders better
-        choice = {"level sample": round(after, 6), "no gradient": round(other[4], 6)}
-        if other[2] and (not updated or other[4] < (1 - CHOOSE_MARGIN) * after):
+        steep = steepness(gains, small.lights) if updated else 0.0
+        choice = {"level sample": round(after, 6), "no gradient": round(other[4], 6), "level gradient": round(steep, 4)}
+        if other[2] and (not updated or prefers_no_gradient(after, other[4], steep)):
             (gains, read, updated, _, after), level = other, False
     worse = updated and after >= before
     fallback = None
@@ -220,6 +231,23 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     if worse:
         record["rejected"] = "the estimated intensities re-render the photos no better than the capture's own"
     return gains, record
+
+
+def prefers_no_gradient(level_rmse: float, none_rmse: float, steep: float) -> bool:
+    """Whether ``choose`` keeps the estimate without a gradient over the level one, given
+    each one's re-rendering RMSE and the level gains' gradient (:func:`steepness`): where
+    its fit re-renders at least ``CHOOSE_MARGIN`` better, or where the two tie (within the
+    margin either way) and the level gains are at least ``TIE_GRADIENT`` steep."""
+    if none_rmse < (1 - CHOOSE_MARGIN) * level_rmse:
+        return True
+    tie = none_rmse < (1 + CHOOSE_MARGIN) * level_rmse
+    return tie and TIE_GRADIENT is not None and steep >= TIE_GRADIENT
+
+
+def steepness(gains: Tensor, lights: LightSet) -> float:
+    """The length of the gains' gradient across the dome (:func:`gradient`), the mean over
+    the channels: the slope of their logarithm along the lights' horizontal directions."""
+    return float(gradient(gains, lights).norm(dim=0).mean())
 
 
 def _rounds(
