@@ -25,6 +25,14 @@ what comes back from a GPU lease, where the checkpoints with Adam's state are to
 bring back): every run starts at its weights and their step (all the same step), with a
 fresh Adam, and each seed's batches go on where they stopped (the samples of steps
 ``step``, ``step`` + 1, …, as an uninterrupted run draws them). ``OUT`` must be a new folder.
+
+``--ema D`` keeps each run's exponential moving average of its weights (decay ``D`` a
+step, ``TrainConfig.ema``), as ``train()`` does: the checkpoint holds it beside the
+weights, and the float16 export is the average, not the last step's weights. With a
+constant learning rate the last weights wander from step to step (docs/results.md, Table
+9: the variants' order turned at each budget); the average over the last ``1 / (1 - D)``
+steps or so is the steadier endpoint to compare. A ``--resume`` from such exports goes on
+from the averages.
 """
 
 from __future__ import annotations
@@ -91,6 +99,7 @@ def train_together(
     rig = resolve_rig(base.rig)
     runs = {}
     starts = {}
+    averages: dict[str, dict[str, torch.Tensor]] = {}  # each run's moving average of its weights (cfg.ema)
     for cfg in configs:
         folder = out / run_name(cfg)
         if (folder / CHECKPOINT).exists():
@@ -110,6 +119,8 @@ def train_together(
         (folder / "config.json").write_text(json.dumps(asdict(cfg), indent=2) + "\n")
         nets = nets.to(device)
         runs[run_name(cfg)] = (cfg, folder, nets, torch.optim.Adam(nets.parameters(), lr=cfg.lr))
+        if cfg.ema:  # as train() starts it: from the weights now (those resumed from, if any)
+            averages[run_name(cfg)] = {k: v.detach().clone() for k, v in nets.state_dict().items()}
     if len(set(starts.values())) > 1:
         raise SystemExit(f"train_ablation: {resume}: the runs stopped at different steps ({starts})")
     start = next(iter(starts.values()), 0)
@@ -148,6 +159,10 @@ def train_together(
                 for params in _groups(nets).values():
                     torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
                 opt.step()
+                if cfg.ema:
+                    with torch.no_grad():
+                        for k, v in nets.state_dict().items():
+                            averages[run_name(cfg)][k].lerp_(v, 1 - cfg.ema)
                 if (step + 1) % cfg.log_every == 0:
                     row = {"step": step + 1, "seconds": round(time.monotonic() - t0, 1)}
                     _append_csv(folder / "log.csv", {**row, **{k: round(v, 6) for k, v in terms.items()}})
@@ -165,7 +180,7 @@ def train_together(
         if base.val_every and step % base.val_every:
             last_val[name] = validate(nets, val_samples, rig)
             _append_csv(folder / "val.csv", {"step": step, **{k: round(v, 6) for k, v in last_val[name].items()}})
-        save_checkpoint(folder / CHECKPOINT, nets, opt, step, cfg, seconds)
+        save_checkpoint(folder / CHECKPOINT, nets, opt, step, cfg, seconds, ema=averages.get(name))
         export_weights(folder / CHECKPOINT, out / f"{name}.safetensors", {"run": str(folder)}, dtype=torch.float16)
     summary = {
         "steps": step,
@@ -201,6 +216,9 @@ def main() -> int:
     parser.add_argument("--render-lights", type=int, default=8)
     parser.add_argument("--log-every", type=int, default=20)
     parser.add_argument("--device", default="auto")
+    parser.add_argument(
+        "--ema", type=float, default=0.0, help="keep the weights' moving average, this decay a step, and export it"
+    )
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--resume", type=Path, help="go on from the float16 weights in this folder (module doc)")
     args = parser.parse_args()
@@ -222,6 +240,7 @@ def main() -> int:
         render_lights=args.render_lights,
         log_every=args.log_every,
         device=args.device,
+        ema=args.ema,
     )
     configs = [replace(common, variant=v, seed=int(s)) for s in args.seeds.split(",") for v in variants]
     last = train_together(configs, args.out, args.minutes, progress=not args.no_progress, resume=args.resume)
