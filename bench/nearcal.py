@@ -73,8 +73,8 @@ the positions alone and on the gains alone.
 
 ``--versus-choose`` compares, per material, ``reconstruct --self-calibrate-positions``
 under ``--led-gradient auto`` as it was before ``selfcal.CHOOSE`` (the level convention,
-with its fallback) and ``choose``
-(both conventions, the better re-rendering kept): the convention each kept, and where the
+with its fallback) and ``choose`` (both conventions, the better re-rendering kept,
+without the tie-breaker, as on draws 3 and 4): the convention each kept, and where the
 two kept different intensities the final novel-light PSNR of each beside the ideal
 dome's (where they kept the same, the reconstruction is the same and is not run), and
 the re-rendering RMSE of each convention's estimate, which ``choose`` compared.
@@ -360,7 +360,9 @@ def versus(name: str, cap: Capture, cfg: ReconstructConfig, maps: MapSet, true: 
         kept = record["convention"] if record["updated"] else "none read"
         ends[side] = (g1, record, kept + (" (fallback)" if "fallback" in record else ""))
     (a, (ga, _, ka)), (b, (gb, rb, kb)) = ends.items()
-    rmse = rb["choice"]  # each convention's re-rendering RMSE, the numbers compared, and the level gradient
+    rmse = rb.get("choice")  # each convention's re-rendering RMSE, the numbers compared, and the level gradient
+    if rmse is None:
+        raise SystemExit(f"{name}: the second way ran one convention only (--no-level?): nothing to compare")
     line = (
         f"{name:16s} {a} {ka:24s} {b} {kb:14s} (RMSE {rmse['level sample']:.5f} / {rmse['no gradient']:.5f}, "
         f"gradient {rmse['level gradient']:.3f})"
@@ -389,16 +391,13 @@ def slopes(name: str, cap: Capture, cfg: ReconstructConfig, gains: torch.Tensor,
     level estimate's gains and of the true ones: a tilt the level convention reads as a
     gradient, beside the LEDs' own."""
 
-    def length(g: torch.Tensor) -> float:
-        return float(estimator.gradient(g, cap.lights).norm(dim=0).mean())
-
     ends = [estimate_gains(cap, replace(cfg, self_calibrate=True, led_gradient=w)) for w in ("fit", "none")]
     (gl, rl), (_, rn) = ends
     a, b = rl["rerender_rmse"]["after"], rn["rerender_rmse"]["after"]
-    read = f"{length(gl):.4f}" if rl["updated"] else "-     "
+    read = f"{estimator.steepness(gl, cap.lights):.4f}" if rl["updated"] else "-     "
     print(
         f"{name:16s} tilt {tilt:3.1f} RMSE level {a:.5f} none {b:.5f} ratio {b / a:.4f}  "
-        f"gradient level {read} true {length(gains):.4f}",
+        f"gradient level {read} true {estimator.steepness(gains, cap.lights):.4f}",
         flush=True,
     )
 
@@ -541,7 +540,7 @@ def main() -> None:
             )
             continue
         if "--versus-choose" in sys.argv:  # "auto" as before selfcal.CHOOSE (level, with its fallback) and "choose"
-            sides = {"auto": ("auto", {"CHOOSE": False}), "choose": ("choose", {})}
+            sides = {"auto": ("auto", {"CHOOSE": False}), "choose": ("choose", {"TIE_GRADIENT": None})}
             versus(name, cap, cfg, maps, true, gains, rig, sides)
             continue
         if tie is not None:  # "auto" with and without the tie-breaker

@@ -820,7 +820,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --self-calibrate: what fixes the LEDs' brightness gradient from one side of the dome to the "
         "other, which a tilted sample photographs like: fit (the sample lies level), none (the LEDs have no "
         "gradient; the sample's tilt is fitted), choose (both, the one that re-renders the photos better kept, "
-        "none only if by 1%%), auto (the default: choose, but none where the calibration scales every light, as a "
+        "none if by 1%%, or within 1%% where the level gains' gradient is at least 0.15), auto (the default: "
+        "choose, but none where the calibration scales every light, as a "
         "grey card measures them); on simulated domes with LEDs ±20%% at random, fit relit 0.8-2.0 dB better on "
         "average than none, and on samples tilted 5° up to 22 dB worse; choose within 0.15 dB of fit on level "
         "samples and 0.4-22 dB better where they differed on tilted ones, at twice the time (docs/rti.md)",

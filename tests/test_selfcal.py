@@ -149,7 +149,8 @@ def test_choose_keeps_the_level_estimate_unless_the_other_is_clearly_better(monk
     """``choose``, and ``auto`` where it takes the sample as level (``CHOOSE``), keeps the
     estimate without a gradient only where its fit re-renders the photos at least
     ``CHOOSE_MARGIN`` (1%) better than the level one's (0.01): 0.5% better is a tie, which
-    goes to the level convention; 2% better is kept. The two estimates are stand-ins (each
+    goes to the level convention here because the stand-in level gains are flat (no
+    gradient for ``TIE_GRADIENT`` to weigh); 2% better is kept. The two estimates are stand-ins (each
     convention's gains a constant); the choice is what is tested."""
     assert selfcal.CHOOSE_MARGIN == 0.01 and selfcal.CHOOSE is True
 
@@ -258,9 +259,14 @@ def test_a_choice_of_no_gradient_is_said_and_followed(monkeypatch):
     cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
     seen, said = _job_with(monkeypatch, record, cfg)
     assert seen == {"level": False} and len(said) == 1
-    assert "(RMSE 0.02) than those that take the sample as lying level (0.04)" in said[0]
+    assert "better (RMSE 0.02) than those that take the sample as lying level (0.04)" in said[0]
     seen, said = _job_with(monkeypatch, record, replace(cfg, led_gradient="choose"))
     assert seen == {"level": False} and said == []
+    # kept by the tie-breaker, 0.5% worse: said as a tie, with the level gains' gradient
+    record["choice"] = {"level sample": 0.02, "no gradient": 0.0201, "level gradient": 0.21}
+    seen, said = _job_with(monkeypatch, record, cfg)
+    assert "better" not in said[0] and "within 1% as well (RMSE 0.0201) as those that take" in said[0]
+    assert "a brightness gradient of 0.21 across the dome" in said[0]
 
 
 def test_the_gradient_needs_the_intensities():

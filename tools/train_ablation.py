@@ -222,6 +222,8 @@ def main() -> int:
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--resume", type=Path, help="go on from the float16 weights in this folder (module doc)")
     args = parser.parse_args()
+    if not 0 <= args.ema < 1:
+        parser.error(f"--ema: {args.ema} must be a decay per step in [0, 1) (0: no moving average)")
     variants = args.variants.split(",")
     for v in variants:
         if v not in VARIANTS:

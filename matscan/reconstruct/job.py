@@ -367,7 +367,7 @@ def reconstruct_capture(
     :func:`anyrig_hold` or the flat start's weak prior (``FLAT_START_PRIOR``; docs/rti.md
     measures both starts)."""
     if cfg.self_calibrate:
-        from matscan.reconstruct.selfcal import estimate_gains, with_gains
+        from matscan.reconstruct.selfcal import CHOOSE_MARGIN, estimate_gains, with_gains
 
         t0 = time.perf_counter()
         gains, record = estimate_gains(capture, cfg)
@@ -408,11 +408,17 @@ def reconstruct_capture(
         before, after = record["rerender_rmse"]["before"], record["rerender_rmse"]["after"]
         chose = record.get("choice", {})
         if cfg.led_gradient == "auto" and chose and record["convention"] == "no gradient" and record["updated"]:
+            nog, lev = f"RMSE {chose['no gradient']:.4g}", f"{chose['level sample']:.4g}"
+            how = (
+                f"re-render the photos better ({nog}) than those that take the sample as lying level ({lev})"
+                if chose["no gradient"] < chose["level sample"]
+                else f"re-render the photos within {CHOOSE_MARGIN:.0%} as well ({nog}) as those that take the sample "
+                f"as lying level ({lev}), whose gains need a brightness gradient of "
+                f"{chose['level gradient']:.3g} across the dome"
+            )
             result.warnings.append(
-                f"--self-calibrate: the intensities estimated for a dome without a brightness gradient re-render "
-                f"the photos better (RMSE {chose['no gradient']:.4g}) than those that take the sample as lying "
-                f"level ({chose['level sample']:.4g}), and are kept: the sample may not lie level, or the lights' "
-                "frame is not the sample's (a handheld light's)"
+                f"--self-calibrate: the intensities estimated for a dome without a brightness gradient {how}, and "
+                "are kept: the sample may not lie level, or the lights' frame is not the sample's (a handheld light's)"
             )
         if "fallback" in record:
             tried = record["fallback"]["rerender_rmse"]

@@ -40,9 +40,10 @@ the albedo absorbs), as semi-calibrated photometric stereo shows. So, alternatel
    be the sample's, they are refused (rti-icon leans 9.5° in its ``.lp`` frame). So
    ``led_gradient`` "choose", and "auto" where the level convention applies
    (``CHOOSE``), runs the rounds under both conventions and keeps the gains whose fit
-   re-renders the photos better, the one without a gradient only if by
-   ``CHOOSE_MARGIN`` (the record's ``choice``, with the level gains' gradient across
-   the dome, which breaks a tie: ``TIE_GRADIENT``), at twice the time;
+   re-renders the photos better, the one without a gradient if by ``CHOOSE_MARGIN``,
+   or within it where the level gains' gradient across the dome is steep
+   (``TIE_GRADIENT``; the record's ``choice`` has both RMSEs and that gradient), at
+   twice the time;
    where the level gains are kept but refused, the other's face the same check
    (``FALLBACK``).
 
@@ -131,9 +132,10 @@ LEVEL = True
 #: capture whose frame is not the sample's (a handheld light's, docs/rti.md) breaks the
 #: level convention, not the other.
 FALLBACK = True
-#: ``led_gradient`` "choose" keeps the estimate without a gradient only if its fit
-#: re-renders the photos at least this share better than the level convention's; else the
-#: level one, the default convention. The two tie where the photos cannot tell a tilt from
+#: ``led_gradient`` "choose" keeps the estimate without a gradient if its fit re-renders
+#: the photos at least this share better than the level convention's, or within this share
+#: either way where the level gains are steep (``TIE_GRADIENT``); else the level one, the
+#: default convention. The two tie where the photos cannot tell a tilt from
 #: a gradient, and a tie went the wrong way: level samples relit 3.66, 0.84 and 0.13 dB
 #: worse (leather, gravel, paper). Over bench/nearcal.py's draws 0-2, on the 65 samples
 #: tilted 5° where the estimate without a gradient re-rendered better it did so by 1.1% or
