@@ -38,11 +38,15 @@ maps fitted together by Gauss–Newton with the pixels eliminated, then the maps
 with its positions and gains (their gradient across the dome and overall factor removed).
 ``--pairs=K`` removes the fit's bias measured with K antithetic pairs of replicas
 (``lightpos.BIAS_PAIRS``, 0 by default), ``--steps=N`` sets the Gauss–Newton steps
-(``ITERATIONS``, 10; the replicas need the fit settled: ``--steps=30 --pairs=1``) and
+(``ITERATIONS``, 10, and ``SHARED_ITERATIONS``, 20; the replicas need the fit settled:
+``--own-f0 --steps=30 --pairs=1``) and
 ``--side=N`` fits on N pixels along the longer side (``POSITION_SIDE``).
 ``--second-order`` removes instead the bias its second-order formula gives
-(``lightpos.SECOND_ORDER``; with ``--steps=30``). ``--shared-f0`` fits one F0 for every
-dielectric pixel instead of each pixel's own (``lightpos.SHARED_F0``; with ``--steps=20``).
+(``lightpos.SECOND_ORDER``; with ``--own-f0 --steps=30``). The joint fit shares one F0
+among the dielectric pixels (``lightpos.SHARED_F0``, the default since its rule held under
+the level convention, 20 steps); ``--own-f0`` fits each pixel's own instead, in 10 steps,
+as every run before that did (``--shared-f0`` named the shared one then, with
+``--steps=20``; both still read so, and reproduce those runs).
 ``--gradient=A`` multiplies the LEDs' brightness by exp(A · x), x the x component of each
 LED's direction from the centre (A = 0.1: about ±9% from one side of the dome to the
 other), a gradient the self-calibration takes as none (a tilted sample looks alike);
@@ -96,7 +100,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--second-order] [--shared-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
+[--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
 [--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose] [--versus-tie=G] [--slopes]
 [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
@@ -428,12 +432,14 @@ def main() -> None:
             lightpos.POSITION_SIDE = int(a.split("=", 1)[1])
         if a.startswith("--pairs="):  # the joint fit's antithetic bias replicas (lightpos.BIAS_PAIRS; 0: none)
             lightpos.BIAS_PAIRS = int(a.split("=", 1)[1])
-        if a.startswith("--steps="):  # the joint fit's Gauss–Newton steps (lightpos.ITERATIONS)
-            lightpos.ITERATIONS = int(a.split("=", 1)[1])
+        if a.startswith("--steps="):  # the joint fit's Gauss–Newton steps (ITERATIONS, SHARED_ITERATIONS)
+            lightpos.ITERATIONS = lightpos.SHARED_ITERATIONS = int(a.split("=", 1)[1])
         if a == "--second-order":  # the joint fit's bias removed by its second-order formula (lightpos.SECOND_ORDER)
             lightpos.SECOND_ORDER = True
         if a == "--shared-f0":  # one F0 for the dielectric pixels in the joint fit (lightpos.SHARED_F0)
             lightpos.SHARED_F0 = True
+        if a == "--own-f0":  # each pixel's own F0 in the joint fit, as before SHARED_F0 was the default
+            lightpos.SHARED_F0 = False
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
             estimator.LEVEL = True
         if a == "--no-level":  # the former convention: the LEDs without a gradient

@@ -17,7 +17,8 @@ With ``--self-calibrate`` the sample is photographed by a dome24 whose LEDs are 
 their rig-file places and brightness as in bench/nearcal.py (±5 mm per axis, ±20%
 brightness and ±3% colour with no gradient across the dome; its first draw), the
 capture naming the plain dome24, and each case runs again with ``--self-calibrate``,
-``--self-calibrate-positions`` and ``--shared-f0``, with their ratios to the plain run.
+``--own-f0`` (the positions too, each pixel its own F0) and ``--self-calibrate-positions``
+(one F0 for the dielectric pixels, its default), with their ratios to the plain run.
 
 Run by hand: .venv/bin/python bench/reconstruct.py [SIZE ...] [--lights 6,24] [--solver lm|adam] [--mirrors]
 [--self-calibrate]
@@ -131,7 +132,7 @@ def main() -> None:
                         flush=True,
                     )
                 if args.self_calibrate:
-                    for flag in ("--self-calibrate", "--self-calibrate-positions", "--shared-f0"):
+                    for flag in ("--self-calibrate", "--own-f0", "--self-calibrate-positions"):
                         more, peak = run_case(cap, Path(tmp) / f"{flag[2:]}{size}_{lights}", args.solver, (flag,))
                         print(
                             f"{'':>7} {'':>3} with {flag}: {more:7.1f} s wall, peak RSS {peak:5.2f} GiB, "

@@ -157,8 +157,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         exr=args.exr,
         directx_normals=args.directx_normals,
         validate=args.validate,
-        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0,
-        self_calibrate_positions=args.self_calibrate_positions or args.shared_f0,
+        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0 is not None,
+        self_calibrate_positions=args.self_calibrate_positions or args.shared_f0 is not None,
         shared_f0=args.shared_f0,
         led_gradient=args.led_gradient,
     )
@@ -561,8 +561,8 @@ def cmd_batch(args: argparse.Namespace) -> str:
         refine=args.refine,
         solver=args.solver,
         validate=args.validate,
-        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0,
-        self_calibrate_positions=args.self_calibrate_positions or args.shared_f0,
+        self_calibrate=args.self_calibrate or args.self_calibrate_positions or args.shared_f0 is not None,
+        self_calibrate_positions=args.self_calibrate_positions or args.shared_f0 is not None,
         shared_f0=args.shared_f0,
         led_gradient=args.led_gradient,
         exr=args.exr,
@@ -804,13 +804,25 @@ def build_parser() -> argparse.ArgumentParser:
         "the maps (about 1 mm on simulated domes; helps samples with relief or texture, can cost a flat "
         "uniform one: docs/rti.md)",
     )
-    p.add_argument(
+    f0 = p.add_mutually_exclusive_group()
+    f0.add_argument(
         "--shared-f0",
         dest="shared_f0",
-        action="store_true",
-        help="--self-calibrate-positions with one F0 for the sample's dielectric pixels in that fit: on simulated "
-        "domes nearer the ideal dome's relighting for most materials (paper, grass, gravel: up to 2.3 dB), 0.2 dB "
-        "worse for a foil print on paper; several times the positions' time (docs/rti.md)",
+        action="store_const",
+        const=True,
+        default=None,
+        help="--self-calibrate-positions with one F0 for the sample's dielectric pixels in that fit, its default: "
+        "on simulated domes whose LEDs have their own brightness gradients, relighting 0.16-0.27 dB nearer the "
+        "ideal dome's on average (paper, grass, gravel: up to 2.8 dB) than with --own-f0 (docs/rti.md)",
+    )
+    f0.add_argument(
+        "--own-f0",
+        dest="shared_f0",
+        action="store_const",
+        const=False,
+        help="--self-calibrate-positions with each pixel's own F0 in that fit, as before the shared one became its "
+        "default: a third of the time at 512² (29 s against 92 s on 2 cores), relit worse on most simulated "
+        "materials (docs/rti.md)",
     )
     p.add_argument(
         "--led-gradient",
@@ -1169,7 +1181,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--self-calibrate-positions", dest="self_calibrate_positions", action="store_true", help="as for reconstruct"
     )
-    p.add_argument("--shared-f0", dest="shared_f0", action="store_true", help="as for reconstruct")
+    f0 = p.add_mutually_exclusive_group()
+    f0.add_argument("--shared-f0", dest="shared_f0", action="store_const", const=True, help="as for reconstruct")
+    f0.add_argument("--own-f0", dest="shared_f0", action="store_const", const=False, help="as for reconstruct")
     p.add_argument(
         "--led-gradient", dest="led_gradient", choices=LED_GRADIENTS, default="auto", help="as for reconstruct"
     )

@@ -66,7 +66,7 @@ def test_positions_come_back_from_photos_of_a_relief():
     sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
     cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES)
     start = reconstruct_capture(with_gains(cap, gains), ReconstructConfig(model="none", refine="on"))
-    pos, fitted, record = fit_positions(cap, start.maps, gains * start.intensity_scale)
+    pos, fitted, record = fit_positions(cap, start.maps, gains * start.intensity_scale, shared_f0=False)
     truth = _true_lights(offsets).position
     before = (RIG.light_set().position - truth).norm(dim=1)
     after = (pos - truth).norm(dim=1)
@@ -141,7 +141,14 @@ def test_a_level_sample_places_the_lights_under_a_brightness_gradient():
     errors = {}
     for level in (True, False):
         gradient = "fit" if level else "none"
-        cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, led_gradient=gradient)
+        cfg = ReconstructConfig(
+            model="none",
+            refine="on",
+            self_calibrate=True,
+            self_calibrate_positions=True,
+            shared_f0=False,  # each pixel its own F0, as when written (the convention is what is tested)
+            led_gradient=gradient,
+        )
         g1, _ = estimate_gains(cap, cfg)
         lights, g2, _, _ = estimate_positions(cap, g1, cfg)
         errors[level] = float((lights.position - truth).norm(dim=1).mean())
@@ -169,7 +176,9 @@ def drifted():
     photos = simulate_images(maps, lit, RIG.field_mm, CameraModel(read_noise=0.002), seed=1)
     sat = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
     cap = Capture(RIG, RIG.field_mm, "srgb", photos, sat, tuple(range(24)), truth, FILES)
-    left, _, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, second_order=False, level=False)
+    left, _, record = fit_positions(
+        cap, maps, gains, iterations=30, bias_pairs=0, second_order=False, shared_f0=False, level=False
+    )
     assert record["bias"] == {"pairs": 0}
     return cap, maps, gains, truth, left
 
@@ -190,7 +199,7 @@ def test_the_bias_is_measured_by_replicas_and_removed(drifted):
     the truth: what it removes points along it, and the positions come nearer the truth
     (1.73 → 1.08 mm when written)."""
     cap, maps, gains, _, _ = drifted
-    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=1, level=False)
+    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=1, shared_f0=False, level=False)
     assert record["bias"]["pairs"] == 1
     removed = _check_removed(drifted, pos, fitted)
     assert record["bias"]["removed_mm"]["mean"] == pytest.approx(float(removed.norm(dim=1).mean()), abs=1e-3)
@@ -203,7 +212,9 @@ def test_the_second_order_formula_measures_the_bias(drifted):
     Against the fit above, what the two remove points along the drift, and the positions
     come nearer the truth (1.73 → 1.09 mm when written, cosine 0.79)."""
     cap, maps, gains, _, _ = drifted
-    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, second_order=True, level=False)
+    pos, fitted, record = fit_positions(
+        cap, maps, gains, iterations=30, bias_pairs=0, second_order=True, shared_f0=False, level=False
+    )
     assert record["bias"]["second_order"] is True and record["bias"]["removed_mm"]["mean"] > 0.3
     _check_removed(drifted, pos, fitted)
 
@@ -350,12 +361,39 @@ def test_the_cli_flag_implies_the_intensities(tmp_path):
     assert record["config"]["self_calibrate"] is True and record["config"]["self_calibrate_positions"] is True
     positions = record["self_calibration"]["positions"]
     assert positions["near_lights"] == 24
+    # the positions' fit shares one F0 among the paper's dielectric pixels by default (SHARED_F0)
+    assert record["config"]["shared_f0"] is None and positions["iterations"] == 20
+    assert positions["shared_f0"]["share"] > 0.9, positions["shared_f0"]
+
+
+def test_own_f0_fits_each_pixels_f0(tmp_path):
+    """``reconstruct --own-f0`` implies the positions' fit, with each pixel's own F0 in its
+    10 steps (``ITERATIONS``): no F0 shared, the fit as before the shared one was the default."""
+    from matscan.cli import main
+
+    photos = _photos(generate("paper", 24, 1), _offsets(), _gains(), noise=0.002)
+    write_capture(tmp_path / "cap", photos, RIG, light_indices=list(range(24)), encoding="srgb", bits=16)
+    main(["reconstruct", str(tmp_path / "cap"), "--out", str(tmp_path / "out"), "--model", "none", "--own-f0"])
+    record = json.loads((tmp_path / "out" / "matscan.json").read_text())
+    assert record["config"]["self_calibrate"] is True and record["config"]["self_calibrate_positions"] is True
+    positions = record["self_calibration"]["positions"]
     assert record["config"]["shared_f0"] is False and "shared_f0" not in positions and positions["iterations"] == 10
 
 
+def test_the_two_f0_flags_exclude_each_other(tmp_path, capsys):
+    from matscan.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tmp_path / "cap"), "--out", str(tmp_path / "out"), "--shared-f0", "--own-f0"])
+    assert "not allowed with argument" in capsys.readouterr().err
+
+
 def test_shared_f0_needs_the_positions_fit():
-    with pytest.raises(MatscanError, match="shared_f0: needs self_calibrate_positions"):
-        ReconstructConfig(self_calibrate=True, shared_f0=True)
+    for value in (True, False):
+        with pytest.raises(MatscanError, match="shared_f0: needs self_calibrate_positions"):
+            ReconstructConfig(self_calibrate=True, shared_f0=value)
+    with pytest.raises(MatscanError, match="shared_f0: 'yes' must be True, False or None"):
+        ReconstructConfig(self_calibrate=True, self_calibrate_positions=True, shared_f0="yes")
 
 
 def test_the_shared_f0_flag_fits_the_positions_with_one_f0(tmp_path):

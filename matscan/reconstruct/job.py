@@ -53,7 +53,7 @@ SELF_CALIBRATION = "self_calibration.json"
 SELF_CALIBRATION_OFF = {
     "self_calibrate": False,
     "self_calibrate_positions": False,
-    "shared_f0": False,
+    "shared_f0": None,
     "led_gradient": "auto",
 }
 #: ``ReconstructConfig.led_gradient``'s values (selfcal.fits_gradient).
@@ -85,9 +85,9 @@ class ReconstructConfig:
     validate: int = 0  # leave this many photos out, reconstruct, and report their re-rendering error
     self_calibrate: bool = False  # estimate each light's RGB intensity with the maps (selfcal)
     self_calibrate_positions: bool = False  # and the near lights' positions (lightpos); needs self_calibrate
-    # in that fit, one F0 for the dielectric pixels (lightpos.SHARED_F0's alternative, off by
-    # default: docs/rti.md); needs self_calibrate_positions
-    shared_f0: bool = False
+    # in that fit, one F0 for the dielectric pixels (True) or each pixel's own (False); None:
+    # lightpos.SHARED_F0 (one, docs/rti.md says why); other than None needs self_calibrate_positions
+    shared_f0: bool | None = None
     # what fixes the self-calibrated gains' gradient across the dome, which a tilted sample
     # photographs like (selfcal.fits_gradient): "fit" (the sample lies level, the gradient is
     # fitted), "none" (the LEDs have none), "choose" (both estimated, the one that re-renders
@@ -121,7 +121,9 @@ class ReconstructConfig:
             raise MatscanError(
                 "self_calibrate_positions: needs self_calibrate (the positions are fitted with the gains)"
             )
-        if self.shared_f0 and not self.self_calibrate_positions:
+        if self.shared_f0 is not None and not isinstance(self.shared_f0, bool):
+            raise MatscanError(f"shared_f0: {self.shared_f0!r} must be True, False or None (lightpos.SHARED_F0)")
+        if self.shared_f0 is not None and not self.self_calibrate_positions:
             raise MatscanError("shared_f0: needs self_calibrate_positions (it is a setting of the positions' fit)")
         if self.led_gradient not in LED_GRADIENTS:
             raise MatscanError(f"led_gradient: {self.led_gradient!r} is not one of {', '.join(LED_GRADIENTS)}")

@@ -89,9 +89,14 @@ and the fit runs from two starts, keeping the end that fits better. Over the thr
 this brought 24, 22 and 21 of the 25 within 0.5 dB of the ideal dome (shipped: 19, 17,
 16) and the 22 fitted 0.25-0.38 dB nearer on average, but a gold foil on paper relit
 about 0.2 dB worse on each draw, though its lights and gains came out nearer the truth:
-it failed the rule set before the run by that one material, so it stays off by default,
-and ``reconstruct --shared-f0`` (``ReconstructConfig.shared_f0``) turns it on, with
-``SHARED_ITERATIONS`` steps.
+it failed the rule set before the run by that one material. All of that was under the
+convention that the LEDs have no brightness gradient across the dome. Under the level
+convention (``selfcal.LEVEL``, the default since) and LEDs with their own gradients, its
+rule, written again before the runs, held on three draws: the mean relighting 0.16-0.27
+dB better, 1-4 more of the 25 within 0.5 dB of the ideal dome on each, no material more
+than 0.09 dB farther below its ideal on average (the foil print 0.03; docs/rti.md). So it is on by default, with
+``SHARED_ITERATIONS`` steps; ``reconstruct --own-f0`` (``ReconstructConfig.shared_f0``
+False) fits each pixel's own F0, in ``ITERATIONS`` steps, as before.
 
 Measured on simulated dome24 captures whose LEDs are ±5 mm off (``bench/nearcal.py``,
 docs/rti.md): the Cramér–Rao bound of such photos puts the positions within about
@@ -161,15 +166,14 @@ SECOND_ORDER = False
 _SPREAD = torch.tensor([0.29] * 6 + [0.28, 1.0, 1.0], dtype=F64)
 #: One F0 (RGB) shared by every pixel whose start gives a dielectric's (each channel below
 #: ``SHARED_BELOW``), fitted with the lights, instead of each pixel's own (module doc;
-#: False: each pixel its own, the default, docs/rti.md says why; use with
-#: ``ITERATIONS`` = 20, as ``bench/nearcal.py --steps=20 --shared-f0`` sets them;
-#: ``reconstruct --shared-f0`` asks for it per capture). Each
-#: pixel's roughness is then searched again over a grid half way through the steps and
-#: twice more, three steps apart (``_RESEED_GRID``).
-SHARED_F0 = False
-#: Gauss–Newton steps of the fit with one shared F0, from each of its two starts (as
-#: ``reconstruct --shared-f0`` runs it; ``SHARED_F0`` with the module's ``ITERATIONS``
-#: otherwise): measured with 20 (docs/rti.md).
+#: the default since its rule held under the level convention, docs/rti.md; False: each
+#: pixel its own, as ``reconstruct --own-f0`` and ``bench/nearcal.py --own-f0`` ask).
+#: Each pixel's roughness is then searched again over a grid half way through the steps
+#: and twice more, three steps apart (``_RESEED_GRID``).
+SHARED_F0 = True
+#: Gauss–Newton steps of the fit with one shared F0, from each of its two starts, as
+#: :func:`estimate_positions` runs it (``ITERATIONS`` with each pixel's own F0): measured
+#: with 20 (docs/rti.md).
 SHARED_ITERATIONS = 20
 #: The start's F0 below which a pixel shares the one F0 (``SHARED_F0``): dielectrics are
 #: about 0.02-0.08; a metal's or a foil's pixels keep their own.
@@ -778,8 +782,9 @@ def estimate_positions(
     """The photos' lights with the near lights where the photos place them, new gains
     (N, 3), a record and warnings, for a capture whose intensities were self-calibrated
     (``gains``, from :func:`matscan.reconstruct.selfcal.estimate_gains`). With
-    ``cfg.shared_f0`` the dielectric pixels share one F0 in the fit (``SHARED_F0``), which
-    then takes ``SHARED_ITERATIONS`` steps from each of its two starts. The maps that
+    ``cfg.shared_f0`` (``SHARED_F0`` when None) the dielectric pixels share one F0 in the
+    fit, which then takes ``SHARED_ITERATIONS`` steps from each of its two starts;
+    without, each pixel fits its own in ``ITERATIONS`` steps. The maps that
     start the joint fit are the ``lm`` solver's from flat maps, on every ``factor``-th
     pixel (``POSITION_SIDE``). Without near lights, or where the capture gives each
     photo's geometry (a flash rig: measured on domes only), the lights are returned as
@@ -806,9 +811,9 @@ def estimate_positions(
     small = reduced(capture, factor)
     fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, **SELF_CALIBRATION_OFF)
     start = reconstruct_capture(with_gains(small, gains), fit_cfg, None)
-    shared = cfg.shared_f0 or SHARED_F0
+    shared = SHARED_F0 if cfg.shared_f0 is None else cfg.shared_f0
     level = selfcal.fits_gradient(capture, cfg) if level is None else level
-    steps = SHARED_ITERATIONS if cfg.shared_f0 else ITERATIONS
+    steps = SHARED_ITERATIONS if shared else ITERATIONS
     total = steps * (1 + 2 * BIAS_PAIRS + (1 if shared else 0))  # the shared F0's second start
     with tqdm(total=total, desc="positions", unit="step", disable=not progress, leave=False) as bar:
         pos, fitted, record = fit_positions(
