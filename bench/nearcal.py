@@ -67,11 +67,12 @@ Where the intensities could not be read (too little diffuse reflection: the reco
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
 
-``--from-truth`` starts the joint fit (``fit_positions``, its bias left in, 30 steps) at
+``--from-truth`` starts the joint fit (``fit_positions``, its bias left in, 30 steps; with
+``--own-f0`` as every run of it before the shared F0 became the default) at
 the true lights, gains and maps and prints how far it drifts (mm): with the camera's
 noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone.
 
-``--variants`` (with ``--steps=30 --pairs=1``) scores the joint fit four ways: its end
+``--variants`` (with ``--own-f0 --steps=30 --pairs=1``) scores the joint fit four ways: its end
 with the bias left in, the pair's correction on positions and gains (``BIAS_PAIRS``), on
 the positions alone and on the gains alone.
 

@@ -165,13 +165,24 @@ def json_safe(obj: Any) -> Any:
     return json.loads(dumps(obj, "settings"))
 
 
+def _as_now(settings: Any) -> Any:
+    """A manifest's settings as this version writes the same ones: before ``shared_f0``
+    could be None (follow ``lightpos.SHARED_F0``) a batch without the positions' fit wrote
+    False, the same settings (with the fit, False was each pixel's own F0: ``--own-f0``)."""
+    if not isinstance(settings, dict) or settings.get("self_calibrate_positions"):
+        return settings
+    if settings.get("shared_f0") is False:
+        return {**settings, "shared_f0": None}
+    return settings
+
+
 def _open_manifest(out: Path, settings: dict[str, Any]) -> dict[str, Any]:
     path = out / MANIFEST
     if path.exists():
         manifest = read_json(path)
         if manifest.get("format") != MANIFEST_FORMAT:
             raise input_error(path, f"is not a {MANIFEST_FORMAT} manifest")
-        if manifest.get("settings") != settings:
+        if _as_now(manifest.get("settings")) != settings:
             raise input_error(
                 path,
                 "was made with other reconstruction settings; use another --out, or the same settings "

@@ -144,3 +144,28 @@ def test_catalogue_sorts_and_filters_in_chromium(captures, tmp_path):
     # the 6-light captures warn that lights are missing; the torn one counts its error
     assert view("warnings=without") == ([], "0 of 3")
     assert view("warnings=with")[1] == "3 of 3"
+
+
+def test_a_manifest_from_before_the_shared_f0_default_still_resumes(tmp_path):
+    """A manifest written when ``shared_f0`` was False unless asked for: without the
+    positions' fit that is today's setting (None) and the batch resumes; with it, False was
+    each pixel's own F0, which is ``--own-f0`` today, and the default is refused."""
+    from dataclasses import asdict, replace
+
+    from matscan.batch import MANIFEST, MANIFEST_FORMAT, _open_manifest, json_safe
+    from matscan.errors import MatscanError
+    from matscan.reconstruct import ReconstructConfig
+
+    for positions in (False, True):
+        cfg = ReconstructConfig(self_calibrate=positions, self_calibrate_positions=positions)
+        now = json_safe(asdict(cfg))
+        old = {**now, "shared_f0": False}
+        out = tmp_path / f"out{positions}"
+        out.mkdir()
+        (out / MANIFEST).write_text(json.dumps({"format": MANIFEST_FORMAT, "settings": old, "captures": {}}))
+        if positions:
+            with pytest.raises(MatscanError, match="other reconstruction settings"):
+                _open_manifest(out, now)
+            assert _open_manifest(out, json_safe(asdict(replace(cfg, shared_f0=False))))["settings"] == old
+        else:
+            assert _open_manifest(out, now)["settings"] == old

@@ -81,7 +81,7 @@ roughness half way through the steps. Over three draws of bench/nearcal.py's dom
 brought a leather, grass and gravel within 0.5 dB of the ideal dome's relighting on each
 and paper on two, but drew the lights of glossy dielectrics (a varnish, a lacquer: sharp
 highlights) 2-9 mm away: it failed the rule set before
-the run and is off (docs/rti.md). A trace showed why: the shared F0 started at the
+the run and stayed off (docs/rti.md). A trace showed why: the shared F0 started at the
 mean of the start's, which read those F0 low (a lacquer's 0.001 for 0.04), and the steps
 moved the lights rather than the shared F0. It now starts where a scan of the photos puts
 it (``_F0_GRID``), is not shared where that is below any dielectric's (``SHARED_MIN``),
@@ -143,16 +143,18 @@ OUTLIER = 4.0
 #: ``calibrate --positions`` does): a wrong rig file, or a fit that went astray.
 MOVED_WARN_MM = 20.0
 #: Antithetic pairs of replicas whose fits measure the fit's bias (:func:`fit_positions`,
-#: module doc; 0: the bias is left in, the default, docs/rti.md says why; use with
-#: ``ITERATIONS`` = 30, as ``bench/nearcal.py --steps=30 --pairs=1`` sets them). Each
+#: module doc; 0: the bias is left in, the default, docs/rti.md says why; measured with
+#: each pixel's own F0 and ``ITERATIONS`` = 30, as ``bench/nearcal.py --own-f0 --steps=30
+#: --pairs=1`` sets them: the replicas refit each pixel's own F0). Each
 #: pair's noise, added to one replica and subtracted from the other, moves their fits by
 #: equal and opposite amounts to first order, which cancel in the mean: what is left is
 #: the bias, which is even in the noise.
 BIAS_PAIRS = 0
 #: Remove the fit's bias by its second-order formula, each pixel's numbers then held near
 #: their start with the spread ``_SPREAD`` during the fit (:func:`fit_positions`, module
-#: doc; False: left in, the default, docs/rti.md says why; use with ``ITERATIONS`` = 30,
-#: as ``bench/nearcal.py --steps=30 --second-order`` sets them). ``BIAS_PAIRS`` above 0
+#: doc; False: left in, the default, docs/rti.md says why; measured with each pixel's own
+#: F0 and ``ITERATIONS`` = 30, as ``bench/nearcal.py --own-f0 --steps=30 --second-order``
+#: sets them). ``BIAS_PAIRS`` above 0
 #: takes precedence.
 SECOND_ORDER = False
 #: With ``SECOND_ORDER``, each pixel's numbers spread at most as if uniform over their
@@ -662,15 +664,15 @@ def fit_positions(
     level: bool | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
-    the maps by ``iterations`` Gauss–Newton steps (``ITERATIONS`` when None), their bias
-    removed with ``bias_pairs`` antithetic pairs of replicas (``BIAS_PAIRS`` when None; 0:
-    left in) or, without pairs and with ``second_order`` (``SECOND_ORDER`` when None), by
-    its second-order formula after a fit that holds the pixels' numbers near their start
-    (module doc). With ``shared_f0`` (``SHARED_F0`` when None) the dielectric pixels share
-    one F0 in the fit. With ``level`` (``selfcal.LEVEL`` when None) the gains' gradient
-    across the dome is fitted too and the kept pixels' slopes' sum held where the start
-    (levelled) put it (:func:`_with_level`). ``progress`` is called with the steps done so far, of
-    ``iterations`` · (1 + 2 · pairs).
+    the maps by ``iterations`` Gauss–Newton steps (when None, ``SHARED_ITERATIONS`` with a
+    shared F0, else ``ITERATIONS``), their bias removed with ``bias_pairs`` antithetic pairs
+    of replicas (``BIAS_PAIRS`` when None; 0: left in) or, without pairs and with
+    ``second_order`` (``SECOND_ORDER`` when None), by its second-order formula after a fit
+    that holds the pixels' numbers near their start (module doc). With ``shared_f0``
+    (``SHARED_F0`` when None) the dielectric pixels share one F0 in the fit. With ``level``
+    (``selfcal.LEVEL`` when None) the gains' gradient across the dome is fitted too and the
+    kept pixels' slopes' sum held where the start (levelled) put it (:func:`_with_level`).
+    ``progress`` is called with the steps done so far, of ``iterations`` · (1 + 2 · pairs).
 
     ``capture`` is the capture as calibrated before self-calibration, already reduced to
     the pixels to use; ``maps`` are maps fitted to its photos divided by ``gains`` (the
@@ -705,10 +707,11 @@ def fit_positions(
             lm._theta_of(maps.roughness.to(F64), maps.normal.to(F64)).reshape(3, -1),
         ]
     )
-    iterations = ITERATIONS if iterations is None else iterations
     pairs = BIAS_PAIRS if bias_pairs is None else bias_pairs
     second = pairs == 0 and (SECOND_ORDER if second_order is None else second_order)
     shared = SHARED_F0 if shared_f0 is None else shared_f0
+    if iterations is None:
+        iterations = SHARED_ITERATIONS if shared else ITERATIONS
     fit = _solve(photos, th, gains.to(F64).log(), iterations, progress, held=second, shared_f0=shared)
     roughness = None  # which start's end was kept where an F0 was shared
     if shared and fit.shared is not None and bool(fit.shared.any()):
