@@ -94,9 +94,10 @@ convention that the LEDs have no brightness gradient across the dome. Under the 
 convention (``selfcal.LEVEL``, the default since) and LEDs with their own gradients, its
 rule, written again before the runs, held on three draws: the mean relighting 0.16-0.27
 dB better, 1-4 more of the 25 within 0.5 dB of the ideal dome on each, no material more
-than 0.09 dB farther below its ideal on average (the foil print 0.03; docs/rti.md). So it is on by default, with
-``SHARED_ITERATIONS`` steps; ``reconstruct --own-f0`` (``ReconstructConfig.shared_f0``
-False) fits each pixel's own F0, in ``ITERATIONS`` steps, as before.
+than 0.09 dB farther below its ideal on average (the foil print 0.03; docs/rti.md). So
+it is on by default, with ``SHARED_ITERATIONS`` steps; ``reconstruct --own-f0``
+(``ReconstructConfig.shared_f0`` False) fits each pixel's own F0, in ``ITERATIONS``
+steps, as before.
 
 Measured on simulated dome24 captures whose LEDs are ±5 mm off (``bench/nearcal.py``,
 docs/rti.md): the Cramér–Rao bound of such photos puts the positions within about
