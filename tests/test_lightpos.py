@@ -383,9 +383,10 @@ def test_own_f0_fits_each_pixels_f0(tmp_path):
 def test_the_two_f0_flags_exclude_each_other(tmp_path, capsys):
     from matscan.cli import main
 
-    with pytest.raises(SystemExit):
-        main(["reconstruct", str(tmp_path / "cap"), "--out", str(tmp_path / "out"), "--shared-f0", "--own-f0"])
-    assert "not allowed with argument" in capsys.readouterr().err
+    for command in ("reconstruct", "batch"):
+        with pytest.raises(SystemExit):
+            main([command, str(tmp_path / "cap"), "--out", str(tmp_path / "out"), "--shared-f0", "--own-f0"])
+        assert "not allowed with argument" in capsys.readouterr().err
 
 
 def test_shared_f0_needs_the_positions_fit():
