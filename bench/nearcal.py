@@ -55,6 +55,11 @@ which the bench's draws otherwise remove. ``--level`` and ``--no-level`` set the
 self-calibration's convention (``selfcal.LEVEL``): the sample level and the gradient in
 the gains (the default since it passed its rule, docs/rti.md), or no gradient (the
 convention every table before that rule was made under).
+``--record`` prints under each fitted material the joint fit's record (``matscan.json``'s
+``positions``): the pixels used, the misfit at its start and end, and the shared F0; then
+the angle of the one turn of the whole dome about the sample's centre that brings the
+fitted positions nearest the true ones (a tilt of the sample looks the same), and their
+error without it.
 ``--split`` prints under each fitted material the gains' RMS error and the PSNR of maps
 fitted with the fitted positions and the true gains, and with the true positions and the
 fitted gains (which of the two the relighting follows), and the mean slope of the fitted
@@ -94,6 +99,11 @@ gradient across the dome (``selfcal.gradient``) of the level estimate's gains be
 true gains': whether a tilt read as a gradient stands out from the LEDs' own, to break
 the ties ``CHOOSE_MARGIN`` leaves to the level convention.
 
+``--level-start`` starts the joint fit from the ``lm`` solver's maps laid level (their
+median slope removed; ``lightpos.LEVEL_START``): under the level convention the fit
+holds the slopes' sum where its start put it, and the solver's maps, fitted at the rig
+file's places, come out tilted.
+
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
 noise; the materials stay the same); 0, the default, is the draw of the tables in docs/rti.md.
@@ -101,14 +111,16 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
-[--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--gradient=A] [--drawn-gradient] [--[no-]level]
-[--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose] [--versus-tie=G] [--slopes]
-[--steps=N] [--side=N] [--seed=S]
+[--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
+[--[no-]level] [--level-start] [--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose]
+[--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
 from __future__ import annotations
 
+import json
+import math
 import sys
 import time
 from dataclasses import replace
@@ -407,6 +419,21 @@ def slopes(name: str, cap: Capture, cfg: ReconstructConfig, gains: torch.Tensor,
     )
 
 
+def turned(pos: torch.Tensor, true: torch.Tensor) -> tuple[float, float, float]:
+    """How much of the positions' error ``pos`` − ``true`` (N, 3, mm) is one turn of the
+    whole dome about the sample's centre (a tilt of the sample, which the photos cannot
+    tell from it): the angle (degrees) of the rotation that brings ``pos`` nearest
+    ``true`` (Kabsch, no shift), and the error's mean and largest once it is removed."""
+    p, t = pos.double(), true.double()
+    u, _, vt = torch.linalg.svd(p.T @ t)
+    d = torch.ones(3, dtype=torch.float64)
+    d[2] = torch.sign(torch.linalg.det(u @ vt))
+    r = u @ torch.diag(d) @ vt  # p @ r ≈ t
+    angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(torch.trace(r)) - 1) / 2))))
+    left = (p @ r - t).norm(dim=1)
+    return angle, float(left.mean()), float(left.max())
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -441,6 +468,8 @@ def main() -> None:
             lightpos.SHARED_F0 = True
         if a == "--own-f0":  # each pixel's own F0 in the joint fit, as before SHARED_F0 was the default
             lightpos.SHARED_F0 = False
+        if a == "--level-start":  # the joint fit started from levelled maps (lightpos.LEVEL_START)
+            lightpos.LEVEL_START = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
             estimator.LEVEL = True
         if a == "--no-level":  # the former convention: the LEDs without a gradient
@@ -573,9 +602,17 @@ def main() -> None:
             variants(name, cap, g1, cfg, maps, true, gains, rig, record["convention"] == "level sample")
             continue
         if "--joint" in sys.argv:  # what reconstruct --self-calibrate-positions runs
-            lights, g2, _, _ = estimate_positions(cap, g1, cfg, level=record["convention"] == "level sample")
+            lights, g2, fitted, _ = estimate_positions(cap, g1, cfg, level=record["convention"] == "level sample")
             both = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
             report(name, lights.position, true, maps, rig, (ideal, plain, gains_only, both))
+            if "--record" in sys.argv:  # what the joint fit found besides the lights
+                shown = {k: fitted[k] for k in ("pixels_used", "misfit_per_value", "shared_f0") if k in fitted}
+                angle, mean, most = turned(lights.position, true.position)
+                print(
+                    f"{'':16s} {json.dumps(shown)}; the positions turned {angle:.3f}° about the sample's centre, "
+                    f"the error without that turn {mean:.2f} mm mean, {most:.2f} max",
+                    flush=True,
+                )
             if "--split" in sys.argv:  # which of the two, positions or gains, the relighting follows
                 ratio = (g2 / gains).log()
                 spread = float((ratio - ratio.mean(0, keepdim=True)).square().mean().sqrt()) * 100

@@ -130,6 +130,13 @@ F64 = torch.float64
 #: to measure its bias (``BIAS_PAIRS``) it must run until it settles: on simulated dome24
 #: captures the positions move little after 30 (module doc).
 ITERATIONS = 10
+#: Under the level convention, start the joint fit from the ``lm`` solver's maps laid
+#: level (their median slope removed, :func:`matscan.reconstruct.selfcal.levelled`), so
+#: that the slopes' sum it holds is a level sample's. The solver's maps, fitted at the rig
+#: file's places, come out tilted (a leather's median slope -0.004, 0.24°), and the fit
+#: then turns the whole dome to match: 0.5° on that leather, most of its 1.9 mm error
+#: (docs/rti.md). False: the solver's maps as they come, as every run before.
+LEVEL_START = False
 #: The capture is reduced to at most this many pixels on its longer side (every
 #: ``factor``-th pixel, as the intensity rounds pick them).
 POSITION_SIDE = 128
@@ -819,6 +826,9 @@ def estimate_positions(
     level = selfcal.fits_gradient(capture, cfg) if level is None else level
     steps = SHARED_ITERATIONS if shared else ITERATIONS
     total = steps * (1 + 2 * BIAS_PAIRS + (1 if shared else 0))  # the shared F0's second start
+    tilt = selfcal.median_slope(start.maps)  # the start's, which the fit holds under the level convention
+    if level and LEVEL_START:
+        start = replace(start, maps=selfcal.levelled(start.maps))
     with tqdm(total=total, desc="positions", unit="step", disable=not progress, leave=False) as bar:
         pos, fitted, record = fit_positions(
             small,
@@ -830,6 +840,8 @@ def estimate_positions(
             level=level,
         )
     record["reduced_by"] = factor
+    if level:  # the start's median slope (x, y), and whether the fit started with it removed
+        record["start_slope"] = {"median": [round(float(v), 5) for v in tilt], "removed": LEVEL_START}
     record["light_positions_mm"] = {
         capture.files[i]: [round(float(v), 3) for v in pos[i]] for i in range(len(pos)) if bool(near[i])
     }

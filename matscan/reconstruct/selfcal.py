@@ -333,9 +333,17 @@ def levelled(maps: MapSet) -> MapSet:
     n = maps.normal
     nz = n[2:3].clamp_min(0.2)
     slope = n[0:2] / nz
-    slope = slope - slope.reshape(2, -1).median(dim=1).values[:, None, None]
+    slope = slope - median_slope(maps)[:, None, None]
     n = torch.cat([slope, torch.ones_like(nz)])
     return MapSet(**{**maps.present(), "normal": n / n.norm(dim=0, keepdim=True)})
+
+
+def median_slope(maps: MapSet) -> Tensor:
+    """The median over the image of the normals' slopes (n_x / n_z, n_y / n_z): (2,), the
+    tilt :func:`levelled` removes."""
+    n = maps.normal
+    slope = n[0:2] / n[2:3].clamp_min(0.2)
+    return slope.reshape(2, -1).median(dim=1).values
 
 
 def without_tilt(gains: Tensor, lights: LightSet) -> Tensor:
