@@ -161,6 +161,43 @@ def test_a_level_sample_places_the_lights_under_a_brightness_gradient():
     assert errors[True] < 2.0 and errors[False] > 2 * errors[True], errors
 
 
+@pytest.mark.parametrize("level_start", [False, True])
+def test_the_joint_fit_starts_from_levelled_maps_when_asked(monkeypatch, level_start):
+    """Under the level convention the joint fit holds the slopes' sum of its start;
+    ``LEVEL_START`` lays that start level first (its median slope none), and the record
+    gives the start's median slope either way. A sample tilted 3° toward +x (slope 0.052)
+    makes the start's tilt plain; the fit itself is replaced by one that keeps the maps
+    it is given."""
+    from matscan.anyrig import tilted
+    from matscan.reconstruct import lightpos, selfcal
+
+    maps = generate("leather", 48, 1)
+    maps = MapSet(**{**maps.present(), "normal": tilted(maps.normal, 3.0, 0.0)})
+    offsets = _offsets()
+    photos = _photos(maps, offsets, _gains(), noise=0.0005)
+    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
+    cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES)
+    given = []
+
+    def kept(capture, start, gains, **_):
+        given.append(start)
+        pos = capture.lights.position
+        return pos, gains, {"moved_mm": {"mean": 0.0, "max": 0.0}}
+
+    monkeypatch.setattr(lightpos, "fit_positions", kept)
+    monkeypatch.setattr(lightpos, "LEVEL_START", level_start)
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
+    _, _, record, _ = estimate_positions(cap, torch.ones(24, 3), cfg, level=True)
+    start = torch.tensor(record["start_slope"]["median"])
+    assert record["start_slope"]["removed"] is level_start
+    assert float(start[0]) > 0.03  # the tilt shows in the solver's maps
+    slope = selfcal.median_slope(given[0])
+    if level_start:
+        assert float(slope.abs().max()) < 1e-6
+    else:
+        torch.testing.assert_close(slope, start, atol=1e-5, rtol=0)
+
+
 @pytest.fixture(scope="module")
 def drifted():
     """Photos of a photographed grass (64², the camera's shot and read noise, 8-bit sRGB)

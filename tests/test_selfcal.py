@@ -75,6 +75,7 @@ def test_levelled_lays_the_ground_level_and_keeps_the_relief():
         roughness=torch.full((1, h, w), 0.5),
         normal=normals(tilted),
     )
+    torch.testing.assert_close(selfcal.median_slope(maps), torch.tensor([0.15, -0.08]), atol=1e-6, rtol=0)
     torch.testing.assert_close(selfcal.levelled(maps).normal, normals(relief), atol=1e-5, rtol=0)
     torch.testing.assert_close(selfcal.levelled(maps).diffuse, maps.diffuse)
 

@@ -20,13 +20,16 @@ What the photos cannot tell is fixed by convention, as for the intensities: the 
 overall RGB factor (the albedo takes it) and their gradient across the dome (a tilted
 sample looks the same). Where the sample is taken as lying level
 (:func:`matscan.reconstruct.selfcal.fits_gradient`) the steps fit the gradient with the
-gains and hold the sum of the kept pixels' slopes where the start, levelled by the
-intensities' rounds, put it (two Lagrange multipliers beside the lights' numbers,
-:func:`_with_level`): with the gradient held at the intensities' estimate instead, made
-at the rig file's places, a photographed brick's lights ended 3.5 mm off (0.86 mm
-held so). Otherwise the steps keep the gradient the intensities came with, none. A
-pixel's step is kept only where it lowers that pixel's misfit, so a few pixels whose
-linearisation is poor (a highlight's edge) cannot reject the lights' step for all.
+gains and hold the sum of the kept pixels' slopes where the start put it (two Lagrange
+multipliers beside the lights' numbers, :func:`_with_level`): with the gradient held at
+the intensities' estimate instead, made at the rig file's places, a photographed brick's
+lights ended 3.5 mm off (0.86 mm held so). That start is the ``lm`` solver's maps fitted
+at the rig file's places, which are not quite level (a leather's median slope −0.004):
+the fit then turns the whole dome to keep their tilt, and ``LEVEL_START`` lays them level
+first (their median slope removed, as the intensities' rounds lay theirs). Otherwise
+the steps keep the gradient the intensities came with, none. A pixel's step is kept only
+where it lowers that pixel's misfit, so a few pixels whose linearisation is poor (a
+highlight's edge) cannot reject the lights' step for all.
 
 The fit is biased. Each pixel brings 9 unknowns of its own, fitted from its own few
 values (3 a photo: 72 on dome24), and where the model bends (a highlight's shape, the
@@ -436,8 +439,8 @@ def _with_level(b: Tensor, c: Tensor, gl: Tensor, moved: Tensor):
     pixels' slopes' sum (x and y) back by ``moved`` (2,), how far it has moved from the
     start: two Lagrange multipliers appended to the lights' numbers, coupled to every
     pixel's two slopes, with no block of their own, and whose right side is −``moved``
-    (``selfcal.LEVEL``: the start's maps were levelled by the intensities' rounds, and
-    the fit keeps the sample's tilt where they put it)."""
+    (``selfcal.LEVEL``: the fit keeps the sample's tilt where its start put it, laid
+    level with ``LEVEL_START``)."""
     e = torch.zeros(b.shape[0], 9, 2, dtype=F64)
     e[:, 7, 0] = 1
     e[:, 8, 1] = 1
@@ -679,7 +682,7 @@ def fit_positions(
     that holds the pixels' numbers near their start (module doc). With ``shared_f0``
     (``SHARED_F0`` when None) the dielectric pixels share one F0 in the fit. With ``level``
     (``selfcal.LEVEL`` when None) the gains' gradient across the dome is fitted too and the
-    kept pixels' slopes' sum held where the start (levelled) put it (:func:`_with_level`).
+    kept pixels' slopes' sum held where the start put it (:func:`_with_level`).
     ``progress`` is called with the steps done so far, of ``iterations`` · (1 + 2 · pairs).
 
     ``capture`` is the capture as calibrated before self-calibration, already reduced to
