@@ -137,8 +137,10 @@ ITERATIONS = 10
 #: level (their median slope removed, :func:`matscan.reconstruct.selfcal.levelled`), so
 #: that the slopes' sum it holds is a level sample's. The solver's maps, fitted at the rig
 #: file's places, come out tilted (a leather's median slope -0.004, 0.24°), and the fit
-#: then turns the whole dome to match: 0.5° on that leather, most of its 1.9 mm error
-#: (docs/rti.md). False: the solver's maps as they come, as every run before.
+#: then turns the whole dome to match: 0.5° on that leather, most of its 1.9 mm error.
+#: Off (the solver's maps as they come): on the first draw of its rule's runs it brought
+#: that leather 0.51 dB nearer its ideal dome but sent a varnished wood's lights 7 mm off,
+#: and the mean relighting of 25 materials did not move (docs/rti.md).
 LEVEL_START = False
 #: The capture is reduced to at most this many pixels on its longer side (every
 #: ``factor``-th pixel, as the intensity rounds pick them).
