@@ -136,8 +136,9 @@ ITERATIONS = 10
 #: Under the level convention, start the joint fit from the ``lm`` solver's maps laid
 #: level (their median slope removed, :func:`matscan.reconstruct.selfcal.levelled`), so
 #: that the slopes' sum it holds is a level sample's. The solver's maps, fitted at the rig
-#: file's places, come out tilted (a leather's median slope -0.004, 0.24°), and the fit
-#: then turns the whole dome to match: 0.5° on that leather, most of its 1.9 mm error.
+#: file's places, come out tilted (a leather's median slope (−0.0042, −0.0016), 0.26°),
+#: and the fit then turns the whole dome to match: 0.5° on that leather, most of its 1.9
+#: mm error.
 #: Off (the solver's maps as they come): on the first draw of its rule's runs it brought
 #: that leather 0.51 dB nearer its ideal dome but sent a varnished wood's lights 7 mm off,
 #: and the mean relighting of 25 materials did not move (docs/rti.md).
