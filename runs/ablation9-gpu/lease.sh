@@ -7,7 +7,8 @@
 # GPU), each with its own data workers. Then it packs what comes back into $OUT: the six
 # float16 weights and one tar of the runs' configs, logs and validation.
 # Environment: WORK (/tmp/ablation9), SEEDS (0 1 2), WORKERS (4 a seed), BATCH (32),
-# EMA (0: none; else the weights' moving average, this decay a step, is what is exported).
+# EMA (0: none; else the weights' moving average, this decay a step, is what is exported),
+# STEPS (none: each run stops at its step STEPS if the minutes last that long).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 export PYTHONPATH=. OMP_NUM_THREADS=2 TORCHINDUCTOR_COMPILE_THREADS=1 PYTHONUNBUFFERED=1
@@ -17,7 +18,7 @@ nvidia-smi --query-gpu=name,memory.used --format=csv,noheader 2>/dev/null
 for s in ${SEEDS:-0 1 2}; do
   python3 tools/train_ablation.py --out "$W/s$s" --minutes "$1" --seeds "$s" \
     --variants four,no_global_skip --batch "${BATCH:-32}" --lr 2e-4 --workers "${WORKERS:-4}" \
-    --val-every 250 --ema "${EMA:-0}" --no-progress ${2:+--resume "$2"} >"$W/s$s.log" 2>&1 &
+    --val-every 250 --ema "${EMA:-0}" --no-progress ${STEPS:+--steps "$STEPS"} ${2:+--resume "$2"} >"$W/s$s.log" 2>&1 &
 done
 wait
 status=0
