@@ -102,7 +102,8 @@ the ties ``CHOOSE_MARGIN`` leaves to the level convention.
 ``--level-start`` starts the joint fit from the ``lm`` solver's maps laid level (their
 median slope removed; ``lightpos.LEVEL_START``): under the level convention the fit
 holds the slopes' sum where its start put it, and the solver's maps, fitted at the rig
-file's places, come out tilted.
+file's places, come out tilted. ``--grey-f0`` makes the shared F0 one number for the
+three channels (``lightpos.GREY_F0``).
 
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
@@ -112,7 +113,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
-[--[no-]level] [--level-start] [--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose]
+[--[no-]level] [--level-start] [--grey-f0] [--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
@@ -470,6 +471,8 @@ def main() -> None:
             lightpos.SHARED_F0 = False
         if a == "--level-start":  # the joint fit started from levelled maps (lightpos.LEVEL_START)
             lightpos.LEVEL_START = True
+        if a == "--grey-f0":  # the shared F0 one number for the three channels (lightpos.GREY_F0)
+            lightpos.GREY_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
             estimator.LEVEL = True
         if a == "--no-level":  # the former convention: the LEDs without a gradient

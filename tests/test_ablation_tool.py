@@ -84,3 +84,23 @@ def test_the_noise_is_the_larger_variants_half_range(tmp_path):
     assert rows["novel"]["verdict"] == "inside the noise"
     with pytest.raises(SystemExit, match="no set has scores of both"):
         tool.paired(tool.seed_scores(tmp_path), "four", "no_global_skp")
+
+
+def test_paired_t_by_hand(tmp_path):
+    """Differences 1, 2, 3: mean 2, sd 1, t = 2 * sqrt(3). The fixture's novel differences
+    0.005, 0.004, 0.006 give t = 0.005 / (0.001 / sqrt(3)) = 8.66, above the 4.303 of two
+    degrees of freedom: four better."""
+    tool = load_tool()
+    assert tool.paired_t([1.0, 2.0, 3.0]) == pytest.approx(2 * 3**0.5)
+    assert tool.paired_t([-1.0, -2.0, -3.0]) == pytest.approx(-2 * 3**0.5)
+    assert tool.paired_t([0.5, 0.5]) == float("inf")
+    assert tool.paired_t([0.0, 0.0, 0.0]) == 0.0
+    write_scores(tmp_path, "unlike")
+    rows = {r["score"]: r for r in tool.paired(tool.seed_scores(tmp_path), "four", "no_global_skip")}
+    assert rows["novel"]["t"] == pytest.approx(0.005 / (0.001 / 3**0.5))
+    assert rows["novel"]["t_verdict"] == "four better"
+    # diffuse +0.1, -0.001, +0.1: mean 0.066333, sd 0.058312, t = 1.9703 < 4.303
+    assert rows["diffuse"]["t"] == pytest.approx(1.9703, abs=0.0005)
+    assert rows["diffuse"]["t_verdict"] == "not significant"
+    assert rows["roughness"]["t_verdict"] == "no_global_skip better"  # -0.02 in every seed: t = -inf
+    assert tool.T_CRITICAL[5] == 2.571

@@ -118,6 +118,51 @@ def test_the_level_step_solves_the_constrained_normal_equations():
     torch.testing.assert_close(after, torch.zeros(2, dtype=torch.float64), atol=1e-9, rtol=0)
 
 
+@pytest.mark.parametrize("grey", [False, True])
+def test_the_shared_f0_step_solves_the_reparametrised_normal_equations(grey):
+    """The step of the fit in which some pixels share one F0 (``SHARED_F0``; one number for
+    the three channels with ``GREY_F0``, else one per channel), made as the fit makes it
+    (pixels eliminated, the shared F0 beside the lights' numbers), is the solution of the
+    whole system's normal equations with those pixels' F0 written as the shared one
+    (θ = T φ: Tᵀ H T and Tᵀ g, solved densely); their own F0 does not move."""
+    from matscan.reconstruct.lightpos import _with_shared_f0, reduced_system
+
+    g = torch.Generator().manual_seed(1)
+    p_count, k = 6, 10
+    jac = torch.randn(400, 9 * p_count + k, generator=g, dtype=torch.float64)
+    for p in range(p_count):
+        rows = torch.ones(400, dtype=torch.bool)
+        rows[50 * p : 50 * p + 50] = False
+        jac[rows, 9 * p : 9 * p + 9] = 0
+    h = jac.T @ jac
+    grad = torch.randn(9 * p_count + k, generator=g, dtype=torch.float64)
+    a = torch.stack([h[9 * p : 9 * p + 9, 9 * p : 9 * p + 9] for p in range(p_count)])
+    b = torch.stack([h[9 * p : 9 * p + 9, 9 * p_count :] for p in range(p_count)])
+    c, gl, gp = h[9 * p_count :, 9 * p_count :], grad[9 * p_count :], grad[: 9 * p_count].reshape(p_count, 9)
+    shared = torch.tensor([True, False, True, True, False, True])
+    a2, gp2, b2, c2, gl2 = _with_shared_f0(a, gp, b, c, gl, shared, grey=grey)
+    ad, sys, rhs = reduced_system(a2, gp2, b2, c2, gl2, 0.0)
+    dl = torch.linalg.solve(sys, rhs)
+    dp = torch.linalg.solve(ad, (gp2 - torch.einsum("pik,k->pi", b2, dl))[..., None])[..., 0]
+
+    extra = 1 if grey else 3
+    t = torch.zeros(9 * p_count + k, 9 * p_count + k + extra, dtype=torch.float64)
+    t[:, : 9 * p_count + k] = torch.eye(9 * p_count + k, dtype=torch.float64)
+    for p in range(p_count):
+        if shared[p]:
+            for ch in range(3):
+                t[9 * p + 3 + ch, 9 * p + 3 + ch] = 0
+                t[9 * p + 3 + ch, 9 * p_count + k + (0 if grey else ch)] = 1
+    hn, gn = t.T @ h @ t, t.T @ grad
+    dummy = [9 * p + 3 + ch for p in range(p_count) if shared[p] for ch in range(3)]
+    hn[dummy, dummy] = 1  # the shared pixels' own F0: no longer a number of the system
+    x = torch.linalg.solve(hn, gn)
+    torch.testing.assert_close(dp.reshape(-1), x[: 9 * p_count], atol=1e-7, rtol=1e-6)
+    torch.testing.assert_close(dl, x[9 * p_count :], atol=1e-7, rtol=1e-6)
+    assert float(dp[shared][:, 3:6].abs().max()) == 0.0
+    assert dl.shape == (k + extra,)
+
+
 def test_a_level_sample_places_the_lights_under_a_brightness_gradient():
     """Float photos with little noise of an embossed leather under LEDs ±5 mm off, ±20% in
     brightness and brighter toward +x (exp(0.08 x): ±7% across the dome). Under the

@@ -21,7 +21,8 @@ over the light counts, averaged over the seeds, with half the seeds' range besid
 noise a difference between variants must exceed). ``--paired A,B`` adds, per set and score,
 each seed's difference B − A (both saw the same batches) and whether it is beyond the noise
 (the rule of runs/ablation9-gpu/README.md: one sign in every seed, and a mean above the
-largest half range over the seeds of either variant).
+largest half range over the seeds of either variant), and the paired Student's t of the
+differences with its two-sided 5% verdict (that README's rule for six seeds).
 """
 
 from __future__ import annotations
@@ -69,6 +70,21 @@ def half_range(values: list[float]) -> float:
     return (max(values) - min(values)) / 2
 
 
+#: Student's t two-sided 5% critical values by degrees of freedom (any statistics table).
+T_CRITICAL = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262, 10: 2.228}
+
+
+def paired_t(d: list[float]) -> float:
+    """The paired t statistic of differences ``d``: mean / (sample sd / sqrt(n)), sd with n - 1;
+    ±inf where every difference is the same nonzero number, 0 where all are zero."""
+    n = len(d)
+    mean = sum(d) / n
+    sd = (sum((x - mean) ** 2 for x in d) / (n - 1)) ** 0.5
+    if sd == 0:
+        return 0.0 if mean == 0 else float("inf") if mean > 0 else float("-inf")
+    return mean / (sd / n**0.5)
+
+
 def seed_table(folder: Path) -> str:
     """Markdown: per set and variant, the scores' means over the counts, mean ± half range over seeds."""
     found = seed_scores(folder)
@@ -103,6 +119,8 @@ def paired(found: dict[tuple[str, str], dict[str, list[float]]], a: str, b: str)
             noise = max(half_range([found[kind, v][s][k] for s in seeds]) for v in (a, b))
             one_sign = all(x > 0 for x in d) or all(x < 0 for x in d)
             beyond = one_sign and abs(mean) > noise
+            t = paired_t(d)
+            critical = T_CRITICAL.get(len(d) - 1)
             out.append(
                 {
                     "set": kind,
@@ -112,6 +130,10 @@ def paired(found: dict[tuple[str, str], dict[str, list[float]]], a: str, b: str)
                     "mean": mean,
                     "noise": noise,
                     "verdict": (f"{a} better" if mean > 0 else f"{b} better") if beyond else "inside the noise",
+                    "t": t,
+                    "t_verdict": "–"
+                    if critical is None
+                    else ((f"{a} better" if t > 0 else f"{b} better") if abs(t) > critical else "not significant"),
                 }
             )
     if not out:
@@ -123,14 +145,15 @@ def paired(found: dict[tuple[str, str], dict[str, list[float]]], a: str, b: str)
 def paired_table(folder: Path, a: str, b: str) -> str:
     rows = paired(seed_scores(folder), a, b)
     lines = [
-        f"| set | score | {b} − {a}, per seed | mean | noise | verdict |",
-        "|---|---|---|---:|---:|---|",
+        f"| set | score | {b} − {a}, per seed | mean | noise | verdict | t | t, 5% |",
+        "|---|---|---|---:|---:|---|---:|---|",
     ]
     for r in rows:
         digits = 2 if r["score"].endswith("°") else 4
         per = ", ".join(f"{x:+.{digits}f}" for x in r["differences"])
         mean, noise = f"{r['mean']:+.{digits}f}", f"{r['noise']:.{digits}f}"
-        lines.append(f"| {r['set']} | {r['score']} | {per} | {mean} | {noise} | {r['verdict']} |")
+        t = f"{r['t']:+.2f} | {r['t_verdict']}"
+        lines.append(f"| {r['set']} | {r['score']} | {per} | {mean} | {noise} | {r['verdict']} | {t} |")
     return "\n".join(lines)
 
 

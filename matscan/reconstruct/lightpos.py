@@ -187,6 +187,12 @@ _SPREAD = torch.tensor([0.29] * 6 + [0.28, 1.0, 1.0], dtype=F64)
 #: Each pixel's roughness is then searched again over a grid half way through the steps
 #: and twice more, three steps apart (``_RESEED_GRID``).
 SHARED_F0 = True
+#: The shared F0 (``SHARED_F0``) is one number for all three channels, not one per channel:
+#: a dielectric's F0 follows from its refractive index, which hardly changes across the
+#: visible. Fitted per channel, a varnished wood's came out (0.042, 0.057, 0.093) for a
+#: grey 0.0465 when the fit started from levelled maps (``LEVEL_START``), its lights 7 mm
+#: off (docs/rti.md). Off until its rule's runs (docs/rti.md) decide.
+GREY_F0 = False
 #: Gauss–Newton steps of the fit with one shared F0, from each of its two starts, as
 #: :func:`estimate_positions` runs it (``ITERATIONS`` with each pixel's own F0): measured
 #: with 20 (docs/rti.md).
@@ -416,16 +422,20 @@ class _Solved:
     scan: tuple[Tensor, float] | None = None  # the shared F0's scan (:func:`_shared_start`)
 
 
-def _with_shared_f0(a: Tensor, gp: Tensor, b: Tensor, c: Tensor, gl: Tensor, shared: Tensor):
+def _with_shared_f0(a: Tensor, gp: Tensor, b: Tensor, c: Tensor, gl: Tensor, shared: Tensor, grey: bool = False):
     """The normal equations (:func:`normal_equations`) with the F0 of the pixels ``shared``
-    (P,) replaced by one F0 (RGB) for all of them, appended to the lights' numbers: the
-    pixels' blocks keep their other numbers, their F0 rows move to the coupling and the
-    lights' block, summed over the pixels that share it."""
+    (P,) replaced by one F0 (RGB; with ``grey`` one number for all three channels) for all
+    of them, appended to the lights' numbers: the pixels' blocks keep their other numbers,
+    their F0 rows move to the coupling and the lights' block, summed over the pixels that
+    share it (and, grey, over the channels: the Jacobian of a grey F0 is the sum of the
+    three channels')."""
     s = shared.to(F64)
-    bf = a[:, :, 3:6] * s[:, None, None]  # (P, 9, 3): each pixel's numbers × the shared F0
-    cff = (a[:, 3:6, 3:6] * s[:, None, None]).sum(0)
-    clf = torch.einsum("pjk,p->kj", b[:, 3:6, :], s)  # (6N, 3): the lights × the shared F0
-    glf = (gp[:, 3:6] * s[:, None]).sum(0)
+    # the shared F0's columns in each pixel's 3 F0 numbers: the identity, or (1, 1, 1) grey
+    k = torch.ones(3, 1, dtype=F64) if grey else torch.eye(3, dtype=F64)
+    bf = (a[:, :, 3:6] @ k) * s[:, None, None]  # (P, 9, K): each pixel's numbers × the shared F0
+    cff = (k.T @ a[:, 3:6, 3:6] @ k * s[:, None, None]).sum(0)
+    clf = torch.einsum("pjk,jf,p->kf", b[:, 3:6, :], k, s)  # (6N, K): the lights × the shared F0
+    glf = (gp[:, 3:6] @ k * s[:, None]).sum(0)
     a, gp, b = a.clone(), gp.clone(), b.clone()
     a[shared, 3:6, :] = 0
     a[shared, :, 3:6] = 0
@@ -527,7 +537,7 @@ def _solve(
             th[3:6, shared] = f0
         else:  # the pixels kept show no dielectric's highlight: each keeps its own
             shared = torch.zeros_like(shared)
-    extra = 3 if shared.any() else 0
+    extra = (1 if GREY_F0 else 3) if shared.any() else 0
     if extra:
         basis = torch.block_diag(basis, torch.eye(extra, dtype=F64))
         half = iterations // 2
@@ -561,7 +571,7 @@ def _solve(
         a, gp, b, c, gl = normal_equations(th, placed, aims, lg.exp(), pts, irls, y)
         a, gp = a + torch.diag(hold[:, 0]), gp - (hold * (th - start)).T
         if extra:
-            a, gp, b, c, gl = _with_shared_f0(a, gp, b, c, gl, shared)
+            a, gp, b, c, gl = _with_shared_f0(a, gp, b, c, gl, shared, grey=extra == 1)
         if level:
             b, c, gl = _with_level(b, c, gl, (th[7:9] - start[7:9]).sum(1))
         for _ in range(8):
@@ -573,7 +583,7 @@ def _solve(
             base = th
             if extra:  # the shared F0's step, for every pixel that shares it
                 base = th.clone()
-                base[3:6, shared] += dl[6 * n : 6 * n + 3, None]
+                base[3:6, shared] += dl[6 * n : 6 * n + extra, None]  # a grey step: one number, all three
                 base = torch.max(torch.min(base, _HIGH), _LOW)
             th_t = torch.max(torch.min(base + dp.T, _HIGH), _LOW)
             at_t = geometry(pos_t, lg_t)
