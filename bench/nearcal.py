@@ -103,7 +103,9 @@ the ties ``CHOOSE_MARGIN`` leaves to the level convention.
 median slope removed; ``lightpos.LEVEL_START``): under the level convention the fit
 holds the slopes' sum where its start put it, and the solver's maps, fitted at the rig
 file's places, come out tilted. ``--grey-f0`` makes the shared F0 one number for the
-three channels (``lightpos.GREY_F0``).
+three channels (``lightpos.GREY_F0``). ``--level-turns=K`` turns the fitted near lights
+about the sample's centre until the solver's maps at them lie level, at most K times
+(``lightpos.LEVEL_TURNS``).
 
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
@@ -113,7 +115,8 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
-[--[no-]level] [--level-start] [--grey-f0] [--no-fallback] [--gains-only] [--tilt=DEG] [--choose] [--versus-choose]
+[--[no-]level] [--level-start] [--level-turns=K] [--grey-f0] [--no-fallback] [--gains-only] [--tilt=DEG]
+[--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
@@ -471,6 +474,8 @@ def main() -> None:
             lightpos.SHARED_F0 = False
         if a == "--level-start":  # the joint fit started from levelled maps (lightpos.LEVEL_START)
             lightpos.LEVEL_START = True
+        if a.startswith("--level-turns="):  # the fitted dome turned until the maps lie level (lightpos.LEVEL_TURNS)
+            lightpos.LEVEL_TURNS = int(a.split("=", 1)[1])
         if a == "--grey-f0":  # the shared F0 one number for the three channels (lightpos.GREY_F0)
             lightpos.GREY_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
@@ -609,7 +614,8 @@ def main() -> None:
             both = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
             report(name, lights.position, true, maps, rig, (ideal, plain, gains_only, both))
             if "--record" in sys.argv:  # what the joint fit found besides the lights
-                shown = {k: fitted[k] for k in ("pixels_used", "misfit_per_value", "shared_f0") if k in fitted}
+                keys = ("pixels_used", "misfit_per_value", "shared_f0", "level_turns")
+                shown = {k: fitted[k] for k in keys if k in fitted}
                 angle, mean, most = turned(lights.position, true.position)
                 print(
                     f"{'':16s} {json.dumps(shown)}; the positions turned {angle:.3f}° about the sample's centre, "

@@ -243,6 +243,66 @@ def test_the_joint_fit_starts_from_levelled_maps_when_asked(monkeypatch, level_s
         torch.testing.assert_close(slope, start, atol=1e-5, rtol=0)
 
 
+def test_the_level_turn_lays_the_median_normal_vertical():
+    """``_level_turn`` of a slope (0.1, −0.05) is a rotation (orthonormal, determinant 1)
+    that takes the normal (0.1, −0.05, 1)/|·| to the vertical, by atan(|slope|) = 6.379°,
+    about an axis in the sample's plane; a level normal needs none."""
+    from matscan.reconstruct.lightpos import _level_turn
+
+    rot = _level_turn(torch.tensor([0.1, -0.05]))
+    m = torch.tensor([0.1, -0.05, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(rot @ (m / m.norm()), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    torch.testing.assert_close(rot @ rot.T, torch.eye(3, dtype=torch.float64))
+    assert float(torch.linalg.det(rot)) == pytest.approx(1.0)
+    angle = math.degrees(math.acos((float(torch.trace(rot)) - 1) / 2))
+    assert angle == pytest.approx(math.degrees(math.atan(math.hypot(0.1, 0.05))), abs=1e-6)
+    axis = torch.tensor([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    assert abs(float(axis[2])) < 1e-9  # about a horizontal axis: no spin about the vertical
+    torch.testing.assert_close(_level_turn(torch.zeros(2)), torch.eye(3, dtype=torch.float64))
+
+
+def test_the_fitted_dome_is_turned_until_the_maps_lie_level(monkeypatch):
+    """A level leather photographed under its true LEDs; the joint fit replaced by one that
+    returns the whole dome turned 0.5° about the sample's centre (1.66 mm mean error), the
+    turn the photos barely show. With ``LEVEL_TURNS`` the maps fitted at those lights lean
+    the way the dome turned (by about 0.3°: each turn takes out 60-70% of what is left),
+    and the turns bring the lights back within a tenth of that error; the record gives
+    each turn and the distance moved from the rig file after them. Without, nothing is
+    turned."""
+    from matscan.reconstruct import lightpos
+    from matscan.reconstruct.lightpos import _level_turn
+
+    maps = generate("leather", 48, 1)
+    offsets, gains = _offsets(), _gains()
+    photos = _photos(maps, offsets, gains, noise=0.0005)
+    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
+    cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES)
+    truth = _true_lights(offsets).position
+    turn = _level_turn(torch.tensor([math.tan(math.radians(0.5)), 0.0])).T.float()  # z toward +x by 0.5°
+    off = truth @ turn.T
+    before = float((off - truth).norm(dim=1).mean())
+    assert 1.5 < before < 1.8
+
+    def turned_dome(capture, start, g, **_):
+        return off.clone(), g, {"moved_mm": {"mean": 0.0, "max": 0.0}}
+
+    monkeypatch.setattr(lightpos, "fit_positions", turned_dome)
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
+    for turns in (0, 6):
+        monkeypatch.setattr(lightpos, "LEVEL_TURNS", turns)
+        lights, _, record, _ = estimate_positions(cap, gains, cfg, level=True)
+        after = float((lights.position - truth).norm(dim=1).mean())
+        if not turns:
+            assert "level_turns" not in record and after == pytest.approx(before, abs=1e-4)
+            continue
+        done = record["level_turns"]
+        assert 0.003 < done[0]["median_slope"][0] < 0.008 and abs(done[0]["median_slope"][1]) < 0.001
+        assert 2 <= len(done) <= 6 and [d["degrees"] for d in done] == sorted(d["degrees"] for d in done)[::-1]
+        assert after < 0.1 * before, (after, done)
+        moved = (lights.position - RIG.light_set().position).norm(dim=1)
+        assert record["moved_mm"]["mean"] == pytest.approx(float(moved.mean()), abs=1e-3)
+
+
 @pytest.fixture(scope="module")
 def drifted():
     """Photos of a photographed grass (64², the camera's shot and read noise, 8-bit sRGB)
