@@ -26,7 +26,9 @@ the intensities' estimate instead, made at the rig file's places, a photographed
 lights ended 3.5 mm off (0.86 mm held so). That start is the ``lm`` solver's maps fitted
 at the rig file's places, which are not quite level (a leather's median slope −0.004):
 the fit then turns the whole dome to keep their tilt, and ``LEVEL_START`` lays them level
-first (their median slope removed, as the intensities' rounds lay theirs). Otherwise
+first (their median slope removed, as the intensities' rounds lay theirs), or
+``LEVEL_TURNS`` turns the fitted dome afterwards until the solver's maps at it lie level
+(:func:`_turned_level`; both off, docs/rti.md says why). Otherwise
 the steps keep the gradient the intensities came with, none. A pixel's step is kept only
 where it lowers that pixel's misfit, so a few pixels whose linearisation is poor (a
 highlight's edge) cannot reject the lights' step for all.
