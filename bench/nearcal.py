@@ -105,7 +105,8 @@ holds the slopes' sum where its start put it, and the solver's maps, fitted at t
 file's places, come out tilted. ``--grey-f0`` makes the shared F0 one number for the
 three channels (``lightpos.GREY_F0``). ``--level-turns=K`` turns the fitted near lights
 about the sample's centre until the solver's maps at them lie level, at most K times
-(``lightpos.LEVEL_TURNS``).
+(``lightpos.LEVEL_TURNS``), under the level convention only (where ``auto`` keeps the
+estimate without a gradient, nothing is turned).
 
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's

@@ -298,6 +298,7 @@ def test_the_fitted_dome_is_turned_until_the_maps_lie_level(monkeypatch):
         done = record["level_turns"]
         assert 0.003 < done[0]["median_slope"][0] < 0.008 and abs(done[0]["median_slope"][1]) < 0.001
         assert 2 <= len(done) <= 6 and [d["degrees"] for d in done] == sorted(d["degrees"] for d in done)[::-1]
+        assert all(d["made"] for d in done[:-1]) and done[-1]["made"] is (done[-1]["degrees"] >= 0.01)
         assert after < 0.1 * before, (after, done)
         moved = (lights.position - RIG.light_set().position).norm(dim=1)
         assert record["moved_mm"]["mean"] == pytest.approx(float(moved.mean()), abs=1e-3)
@@ -386,6 +387,22 @@ def test_the_shared_f0_starts_where_the_photos_put_it(drifted):
     assert record["shared_f0"]["share"] > 0.95 and record["shared_f0"]["roughness"] in ("start", "searched")
     true_f0 = float(maps.specular.mean())
     assert max(abs(v - true_f0) for v in record["shared_f0"]["value"]) < 0.008
+
+
+def test_a_grey_shared_f0_stays_grey_through_the_steps(drifted, monkeypatch):
+    """With ``GREY_F0`` the shared F0 is one number: started at the truth of the grass
+    (grey 0.04), after 6 steps under the level convention (its two multipliers beside the
+    shared F0) its three channels are equal and within 0.008 of the truth, where each
+    channel's own (``GREY_F0`` off) need not be equal."""
+    from matscan.reconstruct import lightpos
+
+    cap, maps, gains, truth, _ = drifted
+    monkeypatch.setattr(lightpos, "GREY_F0", True)
+    pos, _, record = fit_positions(cap, maps, gains, iterations=6, bias_pairs=0, shared_f0=True, level=True)
+    value = record["shared_f0"]["value"]
+    assert record["shared_f0"]["share"] > 0.95 and value[0] == value[1] == value[2]
+    assert abs(value[0] - float(maps.specular.mean())) < 0.008
+    assert float((pos - truth.position).norm(dim=1).mean()) < 2.0
 
 
 def test_no_f0_is_shared_where_the_photos_show_no_dielectric_highlight():

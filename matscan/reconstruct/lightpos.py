@@ -529,7 +529,8 @@ def _solve(
     ``held``, each pixel's numbers are held near their start with the spread ``_SPREAD``
     (a Gaussian prior), as the second-order formula of the bias assumes. With
     ``shared_f0``, the pixels whose start's F0 is a dielectric's share one F0, fitted with
-    the lights (``SHARED_F0``), started at the value of ``_F0_GRID`` that fits best; with
+    the lights (``SHARED_F0``; one number for the three channels with ``GREY_F0``),
+    started at the value of ``_F0_GRID`` that fits best; with
     ``searched`` every pixel starts at the roughness searched there, else at the start's;
     ``scan``: that scan, from an earlier call on the same photos and start."""
     lights, aims, pts, y, valid = photos.lights, photos.aims, photos.pts, photos.y, photos.valid
@@ -827,7 +828,10 @@ def _turned_level(
 ) -> tuple[Tensor, list[dict[str, Any]]]:
     """The near lights' positions ``pos`` (N, 3) turned about the sample's centre until the
     ``lm`` solver's maps fitted at them with ``gains`` lie level (``LEVEL_TURNS``), at most
-    ``turns`` times, and the record of each turn (the maps' median slope, the angle)."""
+    ``turns`` times, and the record of each turn (the maps' median slope, the angle, and
+    whether it was made: the last is not where it was under ``LEVEL_TURN_MIN``; after
+    ``turns`` turns made, the maps at the last are not fitted again). The fit's other
+    numbers (its misfit, the gains) stay those of the lights before the turns."""
     from matscan.reconstruct.job import reconstruct_capture
     from matscan.reconstruct.selfcal import with_gains
 
@@ -838,8 +842,9 @@ def _turned_level(
         slope = selfcal.median_slope(maps).to(F64)
         rot = _level_turn(slope)
         angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(torch.trace(rot)) - 1) / 2))))
-        done.append({"median_slope": [round(float(v), 5) for v in slope], "degrees": round(angle, 4)})
-        if angle < LEVEL_TURN_MIN:
+        made = angle >= LEVEL_TURN_MIN
+        done.append({"median_slope": [round(float(v), 5) for v in slope], "degrees": round(angle, 4), "made": made})
+        if not made:
             break
         pos = torch.where(near[:, None], (pos.to(F64) @ rot.T).to(pos.dtype), pos)
     return pos, done
