@@ -207,7 +207,8 @@ SHARED_F0 = True
 #: a dielectric's F0 follows from its refractive index, which hardly changes across the
 #: visible. Fitted per channel, a varnished wood's came out (0.042, 0.057, 0.093) for a
 #: grey 0.0465 when the fit started from levelled maps (``LEVEL_START``), its lights 7 mm
-#: off (docs/rti.md). Off until its rule's runs (docs/rti.md) decide.
+#: off (docs/rti.md). Off: with the level start it failed its rule's pilot, the wood's
+#: lights 7.2 mm off with its F0 grey (docs/rti.md); alone it was not run under a rule.
 GREY_F0 = False
 #: Gauss–Newton steps of the fit with one shared F0, from each of its two starts, as
 #: :func:`estimate_positions` runs it (``ITERATIONS`` with each pixel's own F0): measured
