@@ -154,8 +154,9 @@ LEVEL_START = False
 #: draw 0, turning the fitted lights so, three times, brought it 53.40 → 53.93 dB at 128²
 #: (ideal 54.44) and 46.33 → 47.70 at 256² (ideal 47.75) (docs/rti.md). 0: no turn, the
 #: default until its rule's runs decide: on draw 0 of its rule (K = 6) the leather came to
-#: 0.51 dB below its ideal, but a heavy weave, whose median normal is 0.4° off vertical
-#: when it lies level, was turned by that and lost 0.21 dB (docs/rti.md).
+#: 0.51 dB below its ideal (0.11 and −0.02 on draws 1 and 2, run alone), but a heavy
+#: weave, whose median normal is 0.4° off vertical when it lies level, was turned by that
+#: and lost 0.21 dB; draws 1 and 2 in full are to come (docs/rti.md).
 LEVEL_TURNS = 0
 #: A turn smaller than this (degrees) is not made: the maps already lie level.
 LEVEL_TURN_MIN = 0.01
