@@ -106,7 +106,9 @@ file's places, come out tilted. ``--grey-f0`` makes the shared F0 one number for
 three channels (``lightpos.GREY_F0``). ``--level-turns=K`` turns the fitted near lights
 about the sample's centre until the solver's maps at them lie level, at most K times
 (``lightpos.LEVEL_TURNS``), under the level convention only (where ``auto`` keeps the
-estimate without a gradient, nothing is turned).
+estimate without a gradient, nothing is turned); a second line, "before turns", gives the
+same fit's lights before the turns and its relighting with them, which is what the
+default (no turns) gives, from one joint fit.
 
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
@@ -439,6 +441,25 @@ def turned(pos: torch.Tensor, true: torch.Tensor) -> tuple[float, float, float]:
     return angle, float(left.mean()), float(left.max())
 
 
+def positions_and_unturned(cap: Capture, g1: torch.Tensor, cfg: ReconstructConfig, level: bool):
+    """``estimate_positions``'s lights, gains and record, and the fitted positions before
+    ``lightpos.LEVEL_TURNS``'s turns (None where nothing was turned): the turns come after
+    the fit and change nothing else, so those are the positions the default gives."""
+    seen = []
+    turn = lightpos._turned_level
+
+    def watched(small, pos, *rest):
+        seen.append(pos.clone())
+        return turn(small, pos, *rest)
+
+    lightpos._turned_level = watched
+    try:
+        lights, g2, fitted, _ = estimate_positions(cap, g1, cfg, level=level)
+    finally:
+        lightpos._turned_level = turn
+    return lights, g2, fitted, seen[0] if seen else None
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -611,9 +632,13 @@ def main() -> None:
             variants(name, cap, g1, cfg, maps, true, gains, rig, record["convention"] == "level sample")
             continue
         if "--joint" in sys.argv:  # what reconstruct --self-calibrate-positions runs
-            lights, g2, fitted, _ = estimate_positions(cap, g1, cfg, level=record["convention"] == "level sample")
+            lights, g2, fitted, unturned = positions_and_unturned(cap, g1, cfg, record["convention"] == "level sample")
             both = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
             report(name, lights.position, true, maps, rig, (ideal, plain, gains_only, both))
+            if unturned is not None:  # the same fit without the turns (LEVEL_TURNS = 0), paired with the line above
+                before = lightpos._lit_from(cap, unturned)
+                fit = reconstruct_capture(with_gains(before, g2), cfg)
+                report(f"{'':4s}before turns", before.lights.position, true, maps, rig, (ideal, plain, gains_only, fit))
             if "--record" in sys.argv:  # what the joint fit found besides the lights
                 keys = ("pixels_used", "misfit_per_value", "shared_f0", "level_turns")
                 shown = {k: fitted[k] for k in keys if k in fitted}
