@@ -108,7 +108,9 @@ about the sample's centre until the solver's maps at them lie level, at most K t
 (``lightpos.LEVEL_TURNS``), under the level convention only (where ``auto`` keeps the
 estimate without a gradient, nothing is turned); a second line, "before turns", gives the
 same fit's lights before the turns and its relighting with them, which is what the
-default (no turns) gives, from one joint fit.
+default (no turns) gives, from one joint fit. ``--level-by=A[,B...]`` says what level
+means for the turns (``lightpos.LEVEL_BY``: ``median``, ``agreed``); each after the
+first turns the same fit's lights from where the first's started, on a line of its own.
 
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
@@ -118,8 +120,8 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
-[--[no-]level] [--level-start] [--level-turns=K] [--grey-f0] [--no-fallback] [--gains-only] [--tilt=DEG]
-[--choose] [--versus-choose]
+[--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--no-fallback] [--gains-only]
+[--tilt=DEG] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
@@ -442,15 +444,16 @@ def turned(pos: torch.Tensor, true: torch.Tensor) -> tuple[float, float, float]:
 
 
 def positions_and_unturned(cap: Capture, g1: torch.Tensor, cfg: ReconstructConfig, level: bool):
-    """``estimate_positions``'s lights, gains and record, and the fitted positions before
-    ``lightpos.LEVEL_TURNS``'s turns (None where nothing was turned): the turns come after
-    the fit and change nothing else, so those are the positions the default gives."""
+    """``estimate_positions``'s lights, gains and record, and the arguments of
+    ``lightpos.LEVEL_TURNS``'s turns (None where nothing was turned): the fitted positions
+    before the turns first. The turns come after the fit and change nothing else, so
+    those are the positions the default gives, and other turns can start from them."""
     seen = []
     turn = lightpos._turned_level
 
-    def watched(small, pos, *rest):
-        seen.append(pos.clone())
-        return turn(small, pos, *rest)
+    def watched(*args):
+        seen.append(args)
+        return turn(*args)
 
     lightpos._turned_level = watched
     try:
@@ -475,6 +478,7 @@ def main() -> None:
     usage(__doc__)
     torch.set_num_threads(2)
     prior = 0.0
+    level_by = [lightpos.LEVEL_BY]
     for a in sys.argv[1:]:
         if a.startswith("--prior="):
             prior = float(a.split("=", 1)[1])
@@ -498,6 +502,11 @@ def main() -> None:
             lightpos.LEVEL_START = True
         if a.startswith("--level-turns="):  # the fitted dome turned until the maps lie level (lightpos.LEVEL_TURNS)
             lightpos.LEVEL_TURNS = int(a.split("=", 1)[1])
+        if a.startswith("--level-by="):  # what level means for the turns (lightpos.LEVEL_BY); more: each reported
+            level_by = a.split("=", 1)[1].split(",")
+            if not set(level_by) <= set(lightpos._LEVELS):
+                raise SystemExit(f"--level-by: one of {', '.join(lightpos._LEVELS)} (comma-separated)")
+            lightpos.LEVEL_BY = level_by[0]
         if a == "--grey-f0":  # the shared F0 one number for the three channels (lightpos.GREY_F0)
             lightpos.GREY_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
@@ -636,9 +645,18 @@ def main() -> None:
             both = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
             report(name, lights.position, true, maps, rig, (ideal, plain, gains_only, both))
             if unturned is not None:  # the same fit without the turns (LEVEL_TURNS = 0), paired with the line above
-                before = lightpos._lit_from(cap, unturned)
+                before = lightpos._lit_from(cap, unturned[1])
                 fit = reconstruct_capture(with_gains(before, g2), cfg)
                 report(f"{'':4s}before turns", before.lights.position, true, maps, rig, (ideal, plain, gains_only, fit))
+                for by in level_by[1:]:  # the same fit turned level by another LEVEL_BY
+                    lightpos.LEVEL_BY, was = by, lightpos.LEVEL_BY
+                    try:
+                        pos, done = lightpos._turned_level(*unturned)
+                    finally:
+                        lightpos.LEVEL_BY = was
+                    fit = reconstruct_capture(with_gains(lightpos._lit_from(cap, pos), g2), cfg)
+                    report(f"{'':4s}by {by}", pos, true, maps, rig, (ideal, plain, gains_only, fit))
+                    print(f"{'':16s} {json.dumps(done)}", flush=True)
             if "--record" in sys.argv:  # what the joint fit found besides the lights
                 keys = ("pixels_used", "misfit_per_value", "shared_f0", "level_turns")
                 shown = {k: fitted[k] for k in keys if k in fitted}

@@ -80,6 +80,27 @@ def test_levelled_lays_the_ground_level_and_keeps_the_relief():
     torch.testing.assert_close(selfcal.levelled(maps).diffuse, maps.diffuse)
 
 
+def test_the_agreed_slope_is_the_median_or_trimmed_mean_nearer_none_where_they_agree():
+    """Slopes along x: 70 of 100 pixels at 0, 30 at 0.2 (the median 0; the 10% trimmed
+    mean keeps 60 zeros and 20 at 0.2, 0.05), along y all −0.1; then the whole map
+    tilted along x by t. The agreed slope is the one of the two nearer none where both
+    lean the same way, else none: x 0 (median 0), then for t = 0.03 the median 0.03
+    (trimmed 0.08), for t = −0.03 none (−0.03 and 0.02 disagree), for t = −0.08 the
+    trimmed mean's −0.03 (median −0.08); y −0.1 throughout."""
+    x = torch.cat([torch.zeros(70), torch.full((30,), 0.2)]).reshape(10, 10)
+
+    def maps_of(t: float) -> MapSet:
+        n = torch.stack([x + t, torch.full((10, 10), -0.1), torch.ones(10, 10)])
+        n = n / n.norm(dim=0, keepdim=True)
+        return MapSet(torch.full((3, 10, 10), 0.5), torch.full((1, 10, 10), 0.04), torch.full((1, 10, 10), 0.5), n)
+
+    torch.testing.assert_close(selfcal.trimmed_slope(maps_of(0.0)), torch.tensor([0.05, -0.1]), atol=1e-6, rtol=0)
+    for t, agreed in ((0.0, 0.0), (0.03, 0.03), (-0.03, 0.0), (-0.08, -0.03)):
+        torch.testing.assert_close(selfcal.median_slope(maps_of(t)), torch.tensor([t, -0.1]), atol=1e-6, rtol=0)
+        expect = torch.tensor([agreed, -0.1])
+        torch.testing.assert_close(selfcal.agreed_slope(maps_of(t)), expect, atol=1e-6, rtol=0)
+
+
 def test_a_level_sample_gives_a_brightness_gradient_back():
     """A matte paper photographed exactly under LEDs ±20% in brightness and brighter
     toward +x (exp(0.08 x), x each LED direction's component: ±7% across the dome). Under

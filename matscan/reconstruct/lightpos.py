@@ -158,6 +158,14 @@ LEVEL_START = False
 #: weave, whose median normal is 0.4° off vertical when it lies level, was turned by that
 #: and lost 0.21 dB; draws 1 and 2 in full are to come (docs/rti.md).
 LEVEL_TURNS = 0
+#: What "the maps lie level" means for the turns: "median", their median slope is none
+#: (:func:`matscan.reconstruct.selfcal.median_slope`); "agreed", the tilt that their
+#: median and their 10% trimmed mean agree on is none
+#: (:func:`matscan.reconstruct.selfcal.agreed_slope`): the median alone turned a heavy
+#: weave, an embossed leather and embossed coins, whose median normal is not vertical
+#: when they lie level, and on draw 1 of its rule the lights' mean error rose
+#: (docs/rti.md).
+LEVEL_BY = "median"
 #: A turn smaller than this (degrees) is not made: the maps already lie level.
 LEVEL_TURN_MIN = 0.01
 #: The capture is reduced to at most this many pixels on its longer side (every
@@ -827,15 +835,19 @@ def _level_turn(slope: Tensor) -> Tensor:
     return torch.eye(3, dtype=F64) + sin * kx + (1 - cos) * (kx @ kx)
 
 
+_LEVELS = {"median": selfcal.median_slope, "agreed": selfcal.agreed_slope}
+
+
 def _turned_level(
     small: Capture, pos: Tensor, gains: Tensor, fit_cfg: ReconstructConfig, turns: int
 ) -> tuple[Tensor, list[dict[str, Any]]]:
     """The near lights' positions ``pos`` (N, 3) turned about the sample's centre until the
-    ``lm`` solver's maps fitted at them with ``gains`` lie level (``LEVEL_TURNS``), at most
-    ``turns`` times, and the record of each turn (the maps' median slope, the angle, and
-    whether it was made: the last is not where it was under ``LEVEL_TURN_MIN``; after
-    ``turns`` turns made, the maps at the last are not fitted again). The fit's other
-    numbers (its misfit, the gains) stay those of the lights before the turns."""
+    ``lm`` solver's maps fitted at them with ``gains`` lie level (``LEVEL_TURNS``; level as
+    ``LEVEL_BY`` means it), at most ``turns`` times, and the record of each turn (which
+    level, the maps' slope by it, the angle, and whether it was made: the last is not
+    where it was under ``LEVEL_TURN_MIN``; after ``turns`` turns made, the maps at the last
+    are not fitted again). The fit's other numbers (its misfit, the gains) stay those of
+    the lights before the turns."""
     from matscan.reconstruct.job import reconstruct_capture
     from matscan.reconstruct.selfcal import with_gains
 
@@ -843,11 +855,13 @@ def _turned_level(
     done = []
     for _ in range(turns):
         maps = reconstruct_capture(with_gains(_lit_from(small, pos), gains), fit_cfg, None).maps
-        slope = selfcal.median_slope(maps).to(F64)
+        slope = _LEVELS[LEVEL_BY](maps).to(F64)
         rot = _level_turn(slope)
         angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(torch.trace(rot)) - 1) / 2))))
         made = angle >= LEVEL_TURN_MIN
-        done.append({"median_slope": [round(float(v), 5) for v in slope], "degrees": round(angle, 4), "made": made})
+        done.append(
+            {"by": LEVEL_BY, "slope": [round(float(v), 5) for v in slope], "degrees": round(angle, 4), "made": made}
+        )
         if not made:
             break
         pos = torch.where(near[:, None], (pos.to(F64) @ rot.T).to(pos.dtype), pos)

@@ -346,6 +346,30 @@ def median_slope(maps: MapSet) -> Tensor:
     return slope.reshape(2, -1).median(dim=1).values
 
 
+def trimmed_slope(maps: MapSet, share: float = 0.1) -> Tensor:
+    """The mean over the image of the normals' slopes (n_x / n_z, n_y / n_z) after the
+    lowest and highest ``share`` of each are dropped: (2,)."""
+    n = maps.normal
+    slope = (n[0:2] / n[2:3].clamp_min(0.2)).reshape(2, -1).sort(dim=1).values
+    cut = int(share * slope.shape[1])
+    return slope[:, cut : slope.shape[1] - cut].mean(dim=1)
+
+
+def agreed_slope(maps: MapSet) -> Tensor:
+    """The tilt of the maps that the median and the 10% trimmed mean of their slopes agree
+    on: per axis the one nearer none where both lean the same way, else none (2,) (the
+    minmod of the two). Neither alone finds the level of every sample: on
+    bench/nearcal.py's 25 materials at 128² the true maps' median slope is 0.0104 off
+    none on an embossed leather (0.0051 a heavy weave, 0.0062 a corrugated sheet), where
+    the trimmed mean is within 0.0019, and the trimmed mean is 0.043 off on a sheet
+    embossed with coins (the relief cut by the field's edge), where the median is within
+    0.0005; where they agree the tilt is within 0.0019 on 24 of the 25 (a black
+    leather's 0.0040, its median's)."""
+    median, trimmed = median_slope(maps), trimmed_slope(maps)
+    nearer = torch.where(median.abs() <= trimmed.abs(), median, trimmed)
+    return torch.where(median * trimmed > 0, nearer, torch.zeros_like(nearer))
+
+
 def without_tilt(gains: Tensor, lights: LightSet) -> Tensor:
     """Gains (N, 3) with the part of their logarithm that is linear in the lights'
     horizontal directions removed, and divided by their geometric mean, per channel.
