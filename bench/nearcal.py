@@ -111,6 +111,8 @@ same fit's lights before the turns and its relighting with them, which is what t
 default (no turns) gives, from one joint fit. ``--level-by=A[,B...]`` says what level
 means for the turns (``lightpos.LEVEL_BY``: ``median``, ``agreed``); each after the
 first turns the same fit's lights from where the first's started, on a line of its own.
+``--levels`` prints, for each material, its true maps' slope by the median, the 10%
+trimmed mean and the two's agreement (``selfcal.agreed_slope``), and fits nothing.
 
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
@@ -121,7 +123,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
 [--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--no-fallback] [--gains-only]
-[--tilt=DEG] [--choose] [--versus-choose]
+[--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
@@ -463,6 +465,16 @@ def positions_and_unturned(cap: Capture, g1: torch.Tensor, cfg: ReconstructConfi
     return lights, g2, fitted, seen[0] if seen else None
 
 
+def level_stats(maps: MapSet) -> dict[str, torch.Tensor]:
+    """``--levels``: the maps' slope (x, y) by the median, the 10% trimmed mean and the two's
+    agreement (``selfcal.median_slope``, ``trimmed_slope``, ``agreed_slope``)."""
+    return {
+        "median": estimator.median_slope(maps),
+        "trimmed": estimator.trimmed_slope(maps),
+        "agreed": estimator.agreed_slope(maps),
+    }
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -557,6 +569,8 @@ def main() -> None:
         print(f"{'material':16s} the conventions kept and, where they differ, the final novel-light PSNR (dB)")
     elif "--slopes" in sys.argv:
         print(f"{'material':16s} each convention's re-rendering RMSE; the level gains' gradient and the true one")
+    elif "--levels" in sys.argv:
+        print(f"{'material':16s} the true maps' slope (x, y) by each statistic")
     elif "--bound" in sys.argv:
         print(f"{'material':16s} {'photos alone':>12s} {'+ rig file':>12s}   (RMS position error of the bound, mm)")
     else:
@@ -568,6 +582,10 @@ def main() -> None:
             maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
         if tilt:  # the sample lies tilted toward +x, which the level convention takes as a gradient
             maps = MapSet(**{**maps.present(), "normal": tilted(maps.normal, tilt, 0.0)})
+        if "--levels" in sys.argv:  # the true maps' tilt by each of lightpos.LEVEL_BY's statistics
+            f = "  ".join(f"{k} ({v[0]:+.4f}, {v[1]:+.4f})" for k, v in level_stats(maps).items())
+            print(f"{name:16s} {f}", flush=True)
+            continue
         gains = led_gains(100 + i + draw, gradient="--drawn-gradient" in sys.argv)
         if gradient:  # brighter toward +x across the dome, which the self-calibration takes as none
             gains = gains * torch.exp(gradient * nominal.position[:, :1] / nominal.position.norm(dim=1, keepdim=True))

@@ -153,10 +153,11 @@ LEVEL_START = False
 #: the start level, the fit's path is not changed: on the leather of bench/nearcal.py's
 #: draw 0, turning the fitted lights so, three times, brought it 53.40 → 53.93 dB at 128²
 #: (ideal 54.44) and 46.33 → 47.70 at 256² (ideal 47.75) (docs/rti.md). 0: no turn, the
-#: default until its rule's runs decide: on draw 0 of its rule (K = 6) the leather came to
-#: 0.51 dB below its ideal (0.11 and −0.02 on draws 1 and 2, run alone), but a heavy
-#: weave, whose median normal is 0.4° off vertical when it lies level, was turned by that
-#: and lost 0.21 dB; draws 1 and 2 in full are to come (docs/rti.md).
+#: default: level by the median (K = 6), the leather came to 0.51, 0.11 and −0.02 dB
+#: below its ideal on draws 0-2 (1.04, 0.80, 0.64 without), but on draw 1 the fitted
+#: materials' mean light error rose (1.090 → 1.094 mm: the embossed leather, coins and
+#: black leather, whose median normal is not vertical when they lie level, 1.5-1.7 →
+#: 2.1-2.5 mm), which its rule forbids; level by ``LEVEL_BY`` "agreed" is under its own.
 LEVEL_TURNS = 0
 #: What "the maps lie level" means for the turns: "median", their median slope is none
 #: (:func:`matscan.reconstruct.selfcal.median_slope`); "agreed", the tilt that their
