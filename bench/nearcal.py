@@ -103,14 +103,15 @@ the ties ``CHOOSE_MARGIN`` leaves to the level convention.
 median slope removed; ``lightpos.LEVEL_START``): under the level convention the fit
 holds the slopes' sum where its start put it, and the solver's maps, fitted at the rig
 file's places, come out tilted. ``--grey-f0`` makes the shared F0 one number for the
-three channels (``lightpos.GREY_F0``). ``--level-turns=K`` turns the fitted near lights
-about the sample's centre until the solver's maps at them lie level, at most K times
-(``lightpos.LEVEL_TURNS``), under the level convention only (where ``auto`` keeps the
-estimate without a gradient, nothing is turned); a second line, "before turns", gives the
-same fit's lights before the turns and its relighting with them, which is what the
-default (no turns) gives, from one joint fit. ``--level-by=A[,B...]`` says what level
-means for the turns (``lightpos.LEVEL_BY``: ``median``, ``agreed``); each after the
-first turns the same fit's lights from where the first's started, on a line of its own.
+three channels (``lightpos.GREY_F0``). The fitted near lights are turned about the
+sample's centre until the solver's maps at them lie level, at most K times
+(``lightpos.LEVEL_TURNS``, 6 by default; ``--level-turns=K`` sets it, 0 turns nothing),
+under the level convention only (where ``auto`` keeps the estimate without a gradient,
+nothing is turned); a second line, "before turns", gives the same fit's lights before
+the turns and its relighting with them, which is what no turns give, from one joint fit.
+``--level-by=A[,B...]`` says what level means for the turns (``lightpos.LEVEL_BY``:
+``agreed``, the default, or ``median``); each after the first turns the same fit's
+lights from where the first's started, on a line of its own.
 ``--levels`` prints, for each material, its true maps' slope by the median, the 10%
 trimmed mean and the two's agreement (``selfcal.agreed_slope``), and fits nothing.
 
@@ -582,7 +583,7 @@ def main() -> None:
             maps = MapSet(**{**maps.present(), "specular": torch.zeros_like(maps.specular)})
         if tilt:  # the sample lies tilted toward +x, which the level convention takes as a gradient
             maps = MapSet(**{**maps.present(), "normal": tilted(maps.normal, tilt, 0.0)})
-        if "--levels" in sys.argv:  # the true maps' tilt by each of lightpos.LEVEL_BY's statistics
+        if "--levels" in sys.argv:  # the true maps' tilt by the median, trimmed mean and their agreement
             f = "  ".join(f"{k} ({v[0]:+.4f}, {v[1]:+.4f})" for k, v in level_stats(maps).items())
             print(f"{name:16s} {f}", flush=True)
             continue

@@ -400,7 +400,8 @@ def test_an_estimate_that_fits_the_photos_worse_is_not_kept(monkeypatch):
     are ±5 mm off and ±20% in brightness (bench/nearcal.py's second draw): 16 of its 24
     photos show enough diffuse reflection to pass MIN_PHOTO_SHARE, but the gains read
     there fit the photos worse than the rig file's (re-rendering RMSE 0.00383 against
-    0.00342 when written, without a gradient; the level convention's, tried first, 0.00369),
+    0.00342 when written, without a gradient; the level convention's, tried first, 0.00369;
+    on another machine 0.00351 without a gradient, which the choice then kept and refused),
     so the rig file's are kept. The estimate so refused relights the true knit under
     novel lights 5 dB worse than the rig file's intensities do."""
     from matscan.capture.virtual import CameraModel, simulate_images
@@ -421,13 +422,17 @@ def test_an_estimate_that_fits_the_photos_worse_is_not_kept(monkeypatch):
     est, record = estimate_gains(cap, cfg)
     assert record["updated"] is False and "rejected" in record and record["photos_read"] >= 12
     assert record["rerender_rmse"]["after"] > record["rerender_rmse"]["before"]
-    # the level convention's estimate was kept by the choice (selfcal.CHOOSE), then refused, and
-    # the one without a gradient, already made for the choice, too
-    assert record["choice"]["level sample"] < record["choice"]["no gradient"] == record["rerender_rmse"]["after"]
-    assert record["fallback"]["rerender_rmse"] > record["rerender_rmse"]["before"]
+    # the choice (selfcal.CHOOSE) kept one convention's estimate, which was refused; where that was
+    # the level one, the one without a gradient, already made for the choice, was refused too. Which
+    # of the two the choice keeps turns on the machine's rounding: they are within 6% on this knit
+    choice = record["choice"]
+    assert record["rerender_rmse"]["after"] in (choice["level sample"], choice["no gradient"])
+    if "fallback" in record:
+        assert record["fallback"]["rerender_rmse"] > record["rerender_rmse"]["before"]
+        assert record["rerender_rmse"]["after"] == choice["no gradient"]
     torch.testing.assert_close(est, torch.ones(24, 3), atol=0, rtol=0)
     res = reconstruct_capture(cap, replace(cfg, self_calibrate=True))
-    assert sum("re-render the photos no better either" in w for w in res.warnings) == 1
+    assert sum("no better" in w and "kept" in w for w in res.warnings) == 1
 
     monkeypatch.setattr(selfcal, "_fit_error", lambda *args: 0.0)  # the check passed whatever the estimate
     refused, forced = estimate_gains(cap, cfg)
