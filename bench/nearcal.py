@@ -103,7 +103,12 @@ the ties ``CHOOSE_MARGIN`` leaves to the level convention.
 median slope removed; ``lightpos.LEVEL_START``): under the level convention the fit
 holds the slopes' sum where its start put it, and the solver's maps, fitted at the rig
 file's places, come out tilted. ``--grey-f0`` makes the shared F0 one number for the
-three channels (``lightpos.GREY_F0``). The fitted near lights are turned about the
+three channels (``lightpos.GREY_F0``); ``--hold-f0`` holds it at its scan's value through
+the steps (``lightpos.HOLD_F0``; ``--record`` prints both, ``scanned`` and ``value``).
+``--validate-choice`` prints under each fitted material the re-rendering error of 6
+photos left out (``reconstruct --validate 6``) with the fitted lights and with the rig
+file's places and the intensities alone: whether the photos could tell which relights
+better (on the paper at 256² they could not, docs/rti.md). The fitted near lights are turned about the
 sample's centre until the solver's maps at them lie level, at most K times
 (``lightpos.LEVEL_TURNS``, 6 by default; ``--level-turns=K`` sets it, 0 turns nothing),
 under the level convention only (where ``auto`` keeps the estimate without a gradient,
@@ -123,10 +128,10 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
-[--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--no-fallback] [--gains-only]
+[--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--hold-f0] [--no-fallback] [--gains-only]
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
-[--from-truth[=S]] [--variants] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
+[--from-truth[=S]] [--variants] [--validate-choice] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
 """
 
 from __future__ import annotations
@@ -522,6 +527,8 @@ def main() -> None:
             lightpos.LEVEL_BY = level_by[0]
         if a == "--grey-f0":  # the shared F0 one number for the three channels (lightpos.GREY_F0)
             lightpos.GREY_F0 = True
+        if a == "--hold-f0":  # the shared F0 held at its scan's value through the steps (lightpos.HOLD_F0)
+            lightpos.HOLD_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
             estimator.LEVEL = True
         if a == "--no-level":  # the former convention: the LEDs without a gradient
@@ -676,6 +683,16 @@ def main() -> None:
                     fit = reconstruct_capture(with_gains(lightpos._lit_from(cap, pos), g2), cfg)
                     report(f"{'':4s}by {by}", pos, true, maps, rig, (ideal, plain, gains_only, fit))
                     print(f"{'':16s} {json.dumps(done)}", flush=True)
+            if "--validate-choice" in sys.argv:  # the photos left out, predicted with either set of lights
+                from matscan.reconstruct.job import leave_out_validation
+
+                sides = {"positions": with_gains(replace(cap, lights=lights), g2), "rig file": with_gains(cap, g1)}
+                scores = {k: leave_out_validation(c, 6, cfg, None) for k, c in sides.items()}
+                print(
+                    f"{'':16s} 6 photos left out, RMSE / PSNR: "
+                    + ", ".join(f"{k} {v['rmse_left_out']:.6f} / {v['psnr_left_out']:.2f}" for k, v in scores.items()),
+                    flush=True,
+                )
             if "--record" in sys.argv:  # what the joint fit found besides the lights
                 keys = ("pixels_used", "misfit_per_value", "shared_f0", "level_turns")
                 shown = {k: fitted[k] for k in keys if k in fitted}

@@ -20,7 +20,7 @@ from matscan.errors import MatscanError
 from matscan.mapset import MapSet
 from matscan.materials.photos import photo_material
 from matscan.materials.procedural import generate
-from matscan.reconstruct import ReconstructConfig, reconstruct_capture
+from matscan.reconstruct import ReconstructConfig, lightpos, reconstruct_capture
 from matscan.reconstruct.job import reconstruct
 from matscan.reconstruct.lightpos import estimate_positions, fit_positions
 from matscan.reconstruct.selfcal import with_gains, without_tilt
@@ -390,6 +390,33 @@ def test_the_shared_f0_starts_where_the_photos_put_it(drifted):
     assert record["shared_f0"]["share"] > 0.95 and record["shared_f0"]["roughness"] in ("start", "searched")
     true_f0 = float(maps.specular.mean())
     assert max(abs(v - true_f0) for v in record["shared_f0"]["value"]) < 0.008
+    # before any step the F0 is the scan's, one of its grid's values, in every channel
+    scanned = record["shared_f0"]["scanned"]
+    assert record["shared_f0"]["value"] == [scanned] * 3
+    assert any(abs(scanned - float(f)) < 1e-9 for f in lightpos._F0_GRID)
+
+
+def test_a_held_shared_f0_stays_where_the_scan_put_it(drifted, monkeypatch):
+    """With ``HOLD_F0`` the shared F0 takes no step: after 6 steps it is still the scan's
+    value (a grid value near the grass's 0.04), in each channel, while the lights moved
+    and came within 2 mm of the truth; without the hold the same steps move it off the
+    grid."""
+    cap, maps, gains, truth, _ = drifted
+    start = lightpos._double(cap.lights).position
+
+    def fit(hold: bool):
+        monkeypatch.setattr(lightpos, "HOLD_F0", hold)
+        return fit_positions(cap, maps, gains, iterations=6, bias_pairs=0, shared_f0=True, level=True)
+
+    pos, _, record = fit(True)
+    shared = record["shared_f0"]
+    assert shared["share"] > 0.95 and shared["value"] == [shared["scanned"]] * 3
+    assert abs(shared["scanned"] - float(maps.specular.mean())) < 0.008
+    assert float((pos.double() - start).norm(dim=1).mean()) > 0.01
+    assert float((pos - truth.position).norm(dim=1).mean()) < 2.0
+    _, _, free = fit(False)
+    assert free["shared_f0"]["scanned"] == shared["scanned"]
+    assert max(abs(v - shared["scanned"]) for v in free["shared_f0"]["value"]) > 1e-4
 
 
 def test_a_grey_shared_f0_stays_grey_through_the_steps(drifted, monkeypatch):
@@ -418,7 +445,9 @@ def test_no_f0_is_shared_where_the_photos_show_no_dielectric_highlight():
     sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
     cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), _true_lights(offsets), FILES)
     _, _, record = fit_positions(cap, maps, gains, iterations=2, bias_pairs=0, shared_f0=True)
+    scanned = record["shared_f0"].pop("scanned")
     assert record["shared_f0"] == {"share": 0.0, "value": None, "roughness": None}
+    assert 0 <= scanned < lightpos.SHARED_MIN
 
 
 def test_positions_need_the_intensities():

@@ -222,6 +222,12 @@ SHARED_F0 = True
 #: off (docs/rti.md). Off: with the level start it failed its rule's pilot, the wood's
 #: lights 7.2 mm off with its F0 grey (docs/rti.md); alone it was not run under a rule.
 GREY_F0 = False
+#: The shared F0 (``SHARED_F0``) held at the scan's value (``_F0_GRID``) through the steps,
+#: not fitted with the lights. A diagnostic (``bench/nearcal.py --hold-f0``): on the
+#: bench's paper at 256², a rough dielectric (roughness about 0.9) whose fitted F0 drifts
+#: from the scan's 0.04 to 0.056 (true 0.033; from the truth too, and with every pixel),
+#: held it relit 2.5 dB better, still 1.7 dB below the intensities alone (docs/rti.md).
+HOLD_F0 = False
 #: Gauss–Newton steps of the fit with one shared F0, from each of its two starts, as
 #: :func:`estimate_positions` runs it (``ITERATIONS`` with each pixel's own F0): measured
 #: with 20 (docs/rti.md).
@@ -569,7 +575,8 @@ def _solve(
             shared = torch.zeros_like(shared)
     extra = (1 if GREY_F0 else 3) if shared.any() else 0
     if extra:
-        basis = torch.block_diag(basis, torch.eye(extra, dtype=F64))
+        free = torch.zeros(extra, 0, dtype=F64) if HOLD_F0 else torch.eye(extra, dtype=F64)
+        basis = torch.block_diag(basis, free)  # held: no column, the shared F0 takes no step
         half = iterations // 2
         reseeds = {half, half + 3, half + 6} if iterations >= 8 else set()
     if level:
@@ -630,7 +637,7 @@ def _solve(
             progress(it + 1)
     values = float(valid.sum())
     kept = shared if shared_f0 else None
-    return _Solved(pos, lg, used, th, noise, first / values, cost / values, kept, scan if extra else None)
+    return _Solved(pos, lg, used, th, noise, first / values, cost / values, kept, scan)
 
 
 def _debiased(
@@ -802,6 +809,7 @@ def fit_positions(
             "share": round(float(fit.shared.double().mean()), 4),
             "value": None if one is None else [round(float(v), 4) for v in one],
             "roughness": roughness,  # the kept end's start: "start" (the maps'), "searched", None
+            "scanned": None if fit.scan is None else round(fit.scan[1], 4),  # where the steps started it
         }
     return pos.float(), lg.exp().float(), record
 
