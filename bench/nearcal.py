@@ -105,15 +105,15 @@ holds the slopes' sum where its start put it, and the solver's maps, fitted at t
 file's places, come out tilted. ``--grey-f0`` makes the shared F0 one number for the
 three channels (``lightpos.GREY_F0``); ``--hold-f0`` holds it at its scan's value through
 the steps (``lightpos.HOLD_F0``; ``--record`` prints both, ``scanned`` and ``value``).
-``--validate-choice`` prints under each fitted material the re-rendering error of 6
-photos left out (``reconstruct --validate 6``) with the fitted lights and with the rig
-file's places and the intensities alone: whether the photos could tell which relights
-better (on the paper at 256² they could not, docs/rti.md). The fitted near lights are turned about the
-sample's centre until the solver's maps at them lie level, at most K times
+``--validate-choice`` prints under each fitted material the re-rendering error of 6 photos
+left out (``reconstruct --validate 6``) with the fitted lights and with the rig file's
+places and the intensities alone: whether the photos could tell which relights better (on
+the paper at 256² they could not, docs/rti.md). The fitted near lights are turned about
+the sample's centre until the solver's maps at them lie level, at most K times
 (``lightpos.LEVEL_TURNS``, 6 by default; ``--level-turns=K`` sets it, 0 turns nothing),
 under the level convention only (where ``auto`` keeps the estimate without a gradient,
-nothing is turned); a second line, "before turns", gives the same fit's lights before
-the turns and its relighting with them, which is what no turns give, from one joint fit.
+nothing is turned); a second line, "before turns", gives the same fit's lights before the
+turns and its relighting with them, which is what no turns give, from one joint fit.
 ``--level-by=A[,B...]`` says what level means for the turns (``lightpos.LEVEL_BY``:
 ``agreed``, the default, or ``median``); each after the first turns the same fit's
 lights from where the first's started, on a line of its own.

@@ -398,9 +398,9 @@ def test_the_shared_f0_starts_where_the_photos_put_it(drifted):
 
 def test_a_held_shared_f0_stays_where_the_scan_put_it(drifted, monkeypatch):
     """With ``HOLD_F0`` the shared F0 takes no step: after 6 steps it is still the scan's
-    value (a grid value near the grass's 0.04), in each channel, while the lights moved
-    and came within 2 mm of the truth; without the hold the same steps move it off the
-    grid."""
+    value (a grid value near the grass's 0.04), in each channel, while the lights, started
+    at the truth, moved and stayed within 2 mm of it; without the hold the same steps
+    move it off the scan's value."""
     cap, maps, gains, truth, _ = drifted
     start = lightpos._double(cap.lights).position
 
@@ -415,7 +415,6 @@ def test_a_held_shared_f0_stays_where_the_scan_put_it(drifted, monkeypatch):
     assert float((pos.double() - start).norm(dim=1).mean()) > 0.01
     assert float((pos - truth.position).norm(dim=1).mean()) < 2.0
     _, _, free = fit(False)
-    assert free["shared_f0"]["scanned"] == shared["scanned"]
     assert max(abs(v - shared["scanned"]) for v in free["shared_f0"]["value"]) > 1e-4
 
 
@@ -424,8 +423,6 @@ def test_a_grey_shared_f0_stays_grey_through_the_steps(drifted, monkeypatch):
     (grey 0.04), after 6 steps under the level convention (its two multipliers beside the
     shared F0) its three channels are equal and within 0.008 of the truth, where each
     channel's own (``GREY_F0`` off) need not be equal."""
-    from matscan.reconstruct import lightpos
-
     cap, maps, gains, truth, _ = drifted
     monkeypatch.setattr(lightpos, "GREY_F0", True)
     pos, _, record = fit_positions(cap, maps, gains, iterations=6, bias_pairs=0, shared_f0=True, level=True)

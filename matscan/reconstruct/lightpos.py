@@ -225,8 +225,8 @@ GREY_F0 = False
 #: The shared F0 (``SHARED_F0``) held at the scan's value (``_F0_GRID``) through the steps,
 #: not fitted with the lights. A diagnostic (``bench/nearcal.py --hold-f0``): on the
 #: bench's paper at 256², a rough dielectric (roughness about 0.9) whose fitted F0 drifts
-#: from the scan's 0.04 to 0.056 (true 0.033; from the truth too, and with every pixel),
-#: held it relit 2.5 dB better, still 1.7 dB below the intensities alone (docs/rti.md).
+#: from the scan's 0.04 to 0.056 (true 0.033; as far with every pixel, further from the
+#: truth), held it relit 2.5 dB better, still 1.7 dB below the intensities alone (docs/rti.md).
 HOLD_F0 = False
 #: Gauss–Newton steps of the fit with one shared F0, from each of its two starts, as
 #: :func:`estimate_positions` runs it (``ITERATIONS`` with each pixel's own F0): measured
@@ -809,7 +809,8 @@ def fit_positions(
             "share": round(float(fit.shared.double().mean()), 4),
             "value": None if one is None else [round(float(v), 4) for v in one],
             "roughness": roughness,  # the kept end's start: "start" (the maps'), "searched", None
-            "scanned": None if fit.scan is None else round(fit.scan[1], 4),  # where the steps started it
+            # the scan's best value: where the steps started it, or why none was shared
+            "scanned": None if fit.scan is None else round(fit.scan[1], 4),
         }
     return pos.float(), lg.exp().float(), record
 
