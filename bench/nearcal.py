@@ -74,8 +74,23 @@ gains and maps from these photos, alone and with the rig file's ±5 mm as a prio
 
 ``--from-truth`` starts the joint fit (``fit_positions``, its bias left in, 30 steps; with
 ``--own-f0`` as every run of it before the shared F0 became the default) at
-the true lights, gains and maps and prints how far it drifts (mm): with the camera's
-noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone.
+the true lights, gains and maps and prints how far it drifts (mm) and where it leaves the
+shared F0 (its value, the scan's and its standard error ``se``): with the camera's
+noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone,
+``--from-truth=shot`` with the camera's shot and read noise in 16-bit linear files, and
+``--from-truth=steps`` with the camera's 8-bit steps and no noise. ``--reduced`` fits
+it on the pixels the joint fit would use (every ``POSITION_SIDE``-th: at 256², every
+second; the photos rendered at that side), not every pixel. Diagnostics of what carries
+the bias: ``--no-reseed`` searches no pixel's roughness again (``_RESEED_GRID``),
+``--pin-roughness`` also holds each pixel's roughness at its start (the truth), and
+``--f0-grid=V[,V...]`` sets the shared F0's scan (``_F0_GRID``; one value with
+``--hold-f0`` holds it there); ``--rough-high=H`` lets each pixel's roughness reach H in
+the joint fit (``_HIGH``; 1 by default). ``--true-start`` (with ``--joint``) starts the
+joint fit from the true maps instead of the ``lm`` solver's at the rig file's places: what
+the start's maps cost; ``--start-prior=K`` fits the start's maps with the ``lm`` solver's
+priors times K (``lightpos.START_PRIOR``, 1 by default), ``--start-roughness-prior=K``
+with its roughness prior alone times K (``START_ROUGHNESS_PRIOR``), the maps after it
+as before.
 
 ``--variants`` (with ``--own-f0 --steps=30 --pairs=1``) scores the joint fit four ways: its end
 with the bias left in, the pair's correction on positions and gains (``BIAS_PAIRS``), on
@@ -131,11 +146,15 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] 
 [--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--hold-f0] [--no-fallback] [--gains-only]
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
-[--from-truth[=S]] [--variants] [--validate-choice] [--held-out|--others] [--only=NAMES] [SIZE]   (default 128)
+[--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...] [--rough-high=H]
+[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--variants] [--validate-choice]
+[--held-out|--others] [--only=NAMES]
+[SIZE]   (default 128)
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import sys
@@ -147,7 +166,7 @@ import torch
 from matscan.anyrig import tilted
 from matscan.capture import Capture
 from matscan.capture.folder import Correction
-from matscan.capture.virtual import CameraModel, simulate_images
+from matscan.capture.virtual import CameraModel, apply_camera, simulate_images
 from matscan.color import linear_to_srgb
 from matscan.mapset import MapSet
 from matscan.materials.artist import artist_material
@@ -471,6 +490,30 @@ def positions_and_unturned(cap: Capture, g1: torch.Tensor, cfg: ReconstructConfi
     return lights, g2, fitted, seen[0] if seen else None
 
 
+@contextlib.contextmanager
+def true_start(maps: MapSet, size: int):
+    """``--true-start``: within it, ``estimate_positions`` starts the joint fit from the true
+    maps at the pixels it fits (every ``POSITION_SIDE``-th, as ``selfcal.reduced`` picks
+    them) instead of the ``lm`` solver's at the rig file's places; the solver's fits after
+    it (the turns') are left alone."""
+    from matscan.reconstruct import job
+
+    f = max(1, math.ceil(size / lightpos.POSITION_SIDE))
+    picked = MapSet(**{k: v[..., f // 2 :: f, f // 2 :: f].contiguous() for k, v in maps.present().items()})
+    solver, calls = job.reconstruct_capture, []
+
+    def first_replaced(*args, **kwargs):
+        fit = solver(*args, **kwargs)
+        calls.append(1)
+        return replace(fit, maps=picked) if len(calls) == 1 else fit
+
+    job.reconstruct_capture = first_replaced
+    try:
+        yield
+    finally:
+        job.reconstruct_capture = solver
+
+
 def level_stats(maps: MapSet) -> dict[str, torch.Tensor]:
     """``--levels``: the maps' slope (x, y) by the median, the 10% trimmed mean and the two's
     agreement (``selfcal.median_slope``, ``trimmed_slope``, ``agreed_slope``)."""
@@ -527,6 +570,10 @@ def main() -> None:
             lightpos.LEVEL_BY = level_by[0]
         if a == "--grey-f0":  # the shared F0 one number for the three channels (lightpos.GREY_F0)
             lightpos.GREY_F0 = True
+        if a.startswith("--start-prior="):  # the start's solver priors times K (lightpos.START_PRIOR)
+            lightpos.START_PRIOR = float(a.split("=", 1)[1])
+        if a.startswith("--start-roughness-prior="):  # its roughness prior alone (lightpos.START_ROUGHNESS_PRIOR)
+            lightpos.START_ROUGHNESS_PRIOR = float(a.split("=", 1)[1])
         if a == "--hold-f0":  # the shared F0 held at its scan's value through the steps (lightpos.HOLD_F0)
             lightpos.HOLD_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
@@ -567,10 +614,22 @@ def main() -> None:
             gradient = float(a.split("=", 1)[1])
     tie = next((float(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--versus-tie=")), None)
     for a in sys.argv[1:]:
-        if a.startswith("--from-truth"):
-            truth_noise = float(a.split("=", 1)[1]) if "=" in a else 0.0
+        if a.startswith("--from-truth"):  # 0.0: the camera's; S: Gaussian on float photos; shot; steps
+            v = a.split("=", 1)[1] if "=" in a else "0"
+            truth_noise = v if v in ("shot", "steps") else float(v)
+        if a.startswith("--f0-grid="):  # the shared F0's scan (lightpos._F0_GRID); one value, --hold-f0: held there
+            lightpos._F0_GRID = torch.tensor([float(v) for v in a.split("=", 1)[1].split(",")], dtype=torch.float64)
+        if a.startswith("--rough-high="):  # the joint fit's upper bound on each pixel's roughness (lightpos._HIGH)
+            lightpos._HIGH = lightpos._HIGH.clone()
+            lightpos._HIGH[6] = float(a.split("=", 1)[1])
+    if "--no-reseed" in sys.argv or "--pin-roughness" in sys.argv:  # no pixel's roughness searched again
+        lightpos._reseeded = lambda th, *args: th
+    if "--pin-roughness" in sys.argv:  # each pixel's roughness held at its start: SECOND_ORDER's hold, no formula
+        lightpos._SPREAD = torch.tensor([1e3] * 6 + [1e-5, 1e3, 1e3], dtype=torch.float64)
+        lightpos.SECOND_ORDER = True
+        lightpos._second_order = lambda photos, fit: (fit.pos, fit.lg, {"pairs": 0})
     if truth_noise is not None:
-        print(f"{'material':16s} {'pos err mean':>12s}   (mm, the joint fit started at the true lights and maps)")
+        print(f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   (mm, the joint fit started at the truth)")
     elif "--variants" in sys.argv:
         print(f"{'material':16s} (mm, gains %, dB): bias left in  |  pair on both  |  on positions  |  on gains")
     elif "--versus-choose" in sys.argv or tie is not None:
@@ -609,14 +668,28 @@ def main() -> None:
         files = tuple(f"led_{k:02d}.png" for k in range(24))
         if truth_noise is not None:  # --from-truth: the fit started at the truth, 30 steps
             encoding = "srgb"
-            if truth_noise > 0:
-                photos = render_maps(maps, true.with_intensity(true.intensity * gains), rig.field_mm)
+            if "--reduced" in sys.argv:  # the pixels the joint fit would use (every POSITION_SIDE-th)
+                f = max(1, math.ceil(size / lightpos.POSITION_SIDE))
+                maps = MapSet(**{k: v[..., ::f, ::f].contiguous() for k, v in maps.present().items()})
+                photos = simulate_images(maps, lit, rig.field_mm, CameraModel(read_noise=0.002), seed=i + draw)
+                saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
+            if truth_noise in ("shot", "steps"):  # the camera's noise in 16-bit linear files; its 8-bit steps alone
+                camera = CameraModel(read_noise=0.002, bits=16, encoding="linear") if truth_noise == "shot" else None
+                radiance = render_maps(maps, lit, rig.field_mm)
+                camera, encoding = (camera, "linear") if camera else (CameraModel(read_noise=0.0), "srgb")
+                photos = apply_camera(radiance, camera, torch.Generator().manual_seed(i + draw))
+                saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
+            elif truth_noise > 0:
+                photos = render_maps(maps, lit, rig.field_mm)
                 z = torch.randn(photos.shape, generator=torch.Generator().manual_seed(1))
                 photos, encoding = (photos + truth_noise * z).clamp(0, 1), "linear"
                 saturated = (photos >= 1).any(1, keepdim=True)
             cap = Capture(rig, rig.field_mm, encoding, photos, saturated, tuple(range(24)), true, files)
-            pos, _, _ = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0)
-            print(f"{name:16s} {float((pos - true.position).norm(dim=1).mean()):12.2f}", flush=True)
+            pos, _, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0)
+            err = (pos - true.position).norm(dim=1)
+            shared = record.get("shared_f0") or {}
+            f0 = f"  shared F0 {shared.get('value')} scanned {shared.get('scanned')} se {shared.get('se')}"
+            print(f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}" + f0, flush=True)
             continue
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
         if "--slopes" in sys.argv:  # each convention's estimate, and the level one's gradient
@@ -667,7 +740,12 @@ def main() -> None:
             variants(name, cap, g1, cfg, maps, true, gains, rig, record["convention"] == "level sample")
             continue
         if "--joint" in sys.argv:  # what reconstruct --self-calibrate-positions runs
-            lights, g2, fitted, unturned = positions_and_unturned(cap, g1, cfg, record["convention"] == "level sample")
+            level = record["convention"] == "level sample"
+            if "--true-start" in sys.argv:  # a diagnostic: the joint fit started from the true maps
+                with true_start(maps, size):
+                    lights, g2, fitted, unturned = positions_and_unturned(cap, g1, cfg, level)
+            else:
+                lights, g2, fitted, unturned = positions_and_unturned(cap, g1, cfg, level)
             both = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
             report(name, lights.position, true, maps, rig, (ideal, plain, gains_only, both))
             if unturned is not None:  # the same fit without the turns (LEVEL_TURNS = 0), paired with the line above
