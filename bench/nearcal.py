@@ -79,13 +79,13 @@ shared F0 (its value, the scan's and its standard error ``se``): with the camera
 noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone,
 ``--from-truth=shot`` with the camera's shot and read noise in 16-bit linear files, and
 ``--from-truth=steps`` with the camera's 8-bit steps and no noise. ``--reduced`` fits
-it on the pixels the joint fit would use (every ``POSITION_SIDE``-th: at 256², every
-second; the photos rendered at that side), not every pixel. Diagnostics of what carries
+it on as many pixels as the joint fit uses (every ⌈side / ``POSITION_SIDE``⌉-th: at 256²,
+every second, from the first, where the joint fit takes each block's centre; the photos
+rendered at that side), not every pixel. Diagnostics of what carries
 the bias: ``--no-reseed`` searches no pixel's roughness again (``_RESEED_GRID``),
 ``--pin-roughness`` also holds each pixel's roughness at its start (the truth), and
 ``--f0-grid=V[,V...]`` sets the shared F0's scan (``_F0_GRID``; one value with
-``--hold-f0`` holds it there); ``--rough-high=H`` lets each pixel's roughness reach H in
-the joint fit (``_HIGH``; 1 by default). ``--true-start`` (with ``--joint``) starts the
+``--hold-f0`` holds it there). ``--true-start`` (with ``--joint``) starts the
 joint fit from the true maps instead of the ``lm`` solver's at the rig file's places: what
 the start's maps cost; ``--start-prior=K`` fits the start's maps with the ``lm`` solver's
 priors times K (``lightpos.START_PRIOR``, 1 by default), ``--start-roughness-prior=K``
@@ -146,7 +146,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] 
 [--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--hold-f0] [--no-fallback] [--gains-only]
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
-[--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...] [--rough-high=H]
+[--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--variants] [--validate-choice]
 [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
@@ -493,8 +493,8 @@ def positions_and_unturned(cap: Capture, g1: torch.Tensor, cfg: ReconstructConfi
 @contextlib.contextmanager
 def true_start(maps: MapSet, size: int):
     """``--true-start``: within it, ``estimate_positions`` starts the joint fit from the true
-    maps at the pixels it fits (every ``POSITION_SIDE``-th, as ``selfcal.reduced`` picks
-    them) instead of the ``lm`` solver's at the rig file's places; the solver's fits after
+    maps at the pixels it fits (every ⌈size / ``POSITION_SIDE``⌉-th, as ``selfcal.reduced``
+    picks them) instead of the ``lm`` solver's at the rig file's places; the solver's fits after
     it (the turns') are left alone."""
     from matscan.reconstruct import job
 
@@ -619,9 +619,6 @@ def main() -> None:
             truth_noise = v if v in ("shot", "steps") else float(v)
         if a.startswith("--f0-grid="):  # the shared F0's scan (lightpos._F0_GRID); one value, --hold-f0: held there
             lightpos._F0_GRID = torch.tensor([float(v) for v in a.split("=", 1)[1].split(",")], dtype=torch.float64)
-        if a.startswith("--rough-high="):  # the joint fit's upper bound on each pixel's roughness (lightpos._HIGH)
-            lightpos._HIGH = lightpos._HIGH.clone()
-            lightpos._HIGH[6] = float(a.split("=", 1)[1])
     if "--no-reseed" in sys.argv or "--pin-roughness" in sys.argv:  # no pixel's roughness searched again
         lightpos._reseeded = lambda th, *args: th
     if "--pin-roughness" in sys.argv:  # each pixel's roughness held at its start: SECOND_ORDER's hold, no formula
@@ -668,7 +665,7 @@ def main() -> None:
         files = tuple(f"led_{k:02d}.png" for k in range(24))
         if truth_noise is not None:  # --from-truth: the fit started at the truth, 30 steps
             encoding = "srgb"
-            if "--reduced" in sys.argv:  # the pixels the joint fit would use (every POSITION_SIDE-th)
+            if "--reduced" in sys.argv:  # as many pixels as the joint fit uses (every ⌈size / POSITION_SIDE⌉-th)
                 f = max(1, math.ceil(size / lightpos.POSITION_SIDE))
                 maps = MapSet(**{k: v[..., ::f, ::f].contiguous() for k, v in maps.present().items()})
                 photos = simulate_images(maps, lit, rig.field_mm, CameraModel(read_noise=0.002), seed=i + draw)

@@ -424,7 +424,7 @@ def test_the_shared_f0s_standard_error_predicts_its_spread_over_noise():
     glossy plastic (16², F0 0.046) photographed 6 times with fresh noise (0.002) and
     fitted from its truth for 30 steps, until it settles, each time; the F0's standard
     deviation over the 6 fits, pooled over the channels, is within a factor 1.6 of the
-    mean reported ``se`` (when written 1.06: 0.0034 against 0.0032), which holds the gains'
+    reported ``se``'s RMS (when written 1.06: 0.0034 against 0.0032), which holds the gains'
     overall factor that the albedo and F0 would otherwise take up together."""
     maps = generate("plastic", 16, 1)
     offsets, gains = _offsets(), _gains()

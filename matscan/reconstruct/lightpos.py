@@ -104,10 +104,10 @@ it is on by default, with ``SHARED_ITERATIONS`` steps; ``reconstruct --own-f0``
 (``ReconstructConfig.shared_f0`` False) fits each pixel's own F0, in ``ITERATIONS``
 steps, as before. The record gives the shared F0's standard error (``se``, from the
 fit's own system: :func:`_f0_spread`), the spread the photos' noise alone leaves it,
-which replicas of a glossy plastic's photos confirm (tests). It does not measure the
-bias: a rough paper (roughness about 0.9, drawn at 256²) has its F0 at 0.056 for a
-true 0.033 with an ``se`` of 0.0015 (a photographed brick's 0.0003, a leather's 0.0001;
-docs/rti.md).
+which replicas of a glossy plastic's photos confirm (tests; under the convention of no
+gradient). It does not measure the bias: a rough paper (roughness about 0.9, drawn at
+256²) has its F0 at 0.056 for a true 0.033 with an ``se`` of 0.0015 (a photographed
+brick's 0.0002-0.0003, a leather's 0.0001; docs/rti.md).
 
 Measured on simulated dome24 captures whose LEDs are ±5 mm off (``bench/nearcal.py``,
 docs/rti.md): the Cramér–Rao bound of such photos puts the positions within about
