@@ -90,7 +90,10 @@ joint fit from the true maps instead of the ``lm`` solver's at the rig file's pl
 the start's maps cost; ``--start-prior=K`` fits the start's maps with the ``lm`` solver's
 priors times K (``lightpos.START_PRIOR``, 1 by default), ``--start-roughness-prior=K``
 with its roughness prior alone times K (``START_ROUGHNESS_PRIOR``), the maps after it
-as before.
+as before. ``--weak-start=K`` adds a third start, the solver's maps with its priors times
+K, whose end is kept where it fits the photos better (``lightpos.WEAK_START``; ``--record``
+prints each start's misfit at its end, ``ends``); where its end was kept, a line "without
+weak" gives the same photos' fit without it (the default), so that the two pair.
 
 ``--variants`` (with ``--own-f0 --steps=30 --pairs=1``) scores the joint fit four ways: its end
 with the bias left in, the pair's correction on positions and gains (``BIAS_PAIRS``), on
@@ -147,7 +150,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] 
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
-[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--variants] [--validate-choice]
+[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--variants] [--validate-choice]
 [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -574,6 +577,8 @@ def main() -> None:
             lightpos.START_PRIOR = float(a.split("=", 1)[1])
         if a.startswith("--start-roughness-prior="):  # its roughness prior alone (lightpos.START_ROUGHNESS_PRIOR)
             lightpos.START_ROUGHNESS_PRIOR = float(a.split("=", 1)[1])
+        if a.startswith("--weak-start="):  # a third start, the solver's priors times K (lightpos.WEAK_START)
+            lightpos.WEAK_START = float(a.split("=", 1)[1])
         if a == "--hold-f0":  # the shared F0 held at its scan's value through the steps (lightpos.HOLD_F0)
             lightpos.HOLD_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
@@ -758,6 +763,14 @@ def main() -> None:
                     fit = reconstruct_capture(with_gains(lightpos._lit_from(cap, pos), g2), cfg)
                     report(f"{'':4s}by {by}", pos, true, maps, rig, (ideal, plain, gains_only, fit))
                     print(f"{'':16s} {json.dumps(done)}", flush=True)
+            if fitted.get("shared_f0", {}).get("roughness") == "weak":  # the same photos without the third start
+                lightpos.WEAK_START, weak = 0.0, lightpos.WEAK_START
+                try:
+                    other, g3, _, _ = estimate_positions(cap, g1, cfg, level=level)
+                finally:
+                    lightpos.WEAK_START = weak
+                fit = reconstruct_capture(with_gains(replace(cap, lights=other), g3), cfg)
+                report(f"{'':4s}without weak", other.position, true, maps, rig, (ideal, plain, gains_only, fit))
             if "--validate-choice" in sys.argv:  # the photos left out, predicted with either set of lights
                 from matscan.reconstruct.job import leave_out_validation
 

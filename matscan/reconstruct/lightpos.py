@@ -215,6 +215,10 @@ SECOND_ORDER = False
 #: So 1 and 1, the solver's own, are the defaults (docs/rti.md).
 START_PRIOR = 1.0
 START_ROUGHNESS_PRIOR = 1.0
+#: A third start for the joint fit: the ``lm`` solver's maps fitted with every prior times
+#: this (0: none), fitted from as the other two, on the same pixels under the same noise
+#: model, and kept where its end fits the photos better (``fit_positions``' ``alternate``).
+WEAK_START = 0.0
 _PRIORS = ("prior_diffuse", "prior_specular", "prior_roughness", "prior_normal")
 #: With ``SECOND_ORDER``, each pixel's numbers spread at most as if uniform over their
 #: physical range (ρ and F0 in [0, 1], roughness in [0.02, 1], the slopes within ±√3,
@@ -562,6 +566,7 @@ def _solve(
     shared_f0: bool = False,
     searched: bool = False,
     scan: tuple[Tensor, float] | None = None,
+    fixed: tuple[tuple[float, float], Tensor] | None = None,
 ) -> _Solved:
     """Gauss–Newton over the lights' positions and log gains and every pixel's 9 numbers
     ``th`` (9, P), started at ``photos.lights``' positions and ``lg`` (module doc). With
@@ -571,14 +576,20 @@ def _solve(
     the lights (``SHARED_F0``; one number for the three channels with ``GREY_F0``),
     started at the value of ``_F0_GRID`` that fits best; with
     ``searched`` every pixel starts at the roughness searched there, else at the start's;
-    ``scan``: that scan, from an earlier call on the same photos and start."""
+    ``scan``: that scan, from an earlier call on the same photos and start. ``fixed``: the
+    noise model and the pixels kept of an earlier call (:class:`_Solved`'s ``noise`` and
+    ``used``), so that the two ends' misfits are of the same pixels in the same units."""
     lights, aims, pts, y, valid = photos.lights, photos.aims, photos.pts, photos.y, photos.valid
     n = len(lights)
     pos = lights.position.clone()
     m0 = _render(th, _placed(lights, aims, pos, lg.exp()), pts)
-    wt, noise = _noise_weights(y, m0, valid)
-    per_pixel = (wt * (y - m0) ** 2).sum((0, 1)) / valid.sum((0, 1)).clamp_min(1)
-    used = per_pixel <= OUTLIER * per_pixel.median()
+    if fixed is None:
+        wt, noise = _noise_weights(y, m0, valid)
+        per_pixel = (wt * (y - m0) ** 2).sum((0, 1)) / valid.sum((0, 1)).clamp_min(1)
+        used = per_pixel <= OUTLIER * per_pixel.median()
+    else:
+        noise, used = fixed
+        wt = valid / (noise[0] * y.clamp_min(0) + noise[1])
     th, y, valid, wt, pts = th[:, used], y[..., used], valid[..., used], wt[..., used], pts[used]
     level = photos.level
     basis = _free_directions(lights, photos.near, gradient=level)
@@ -769,6 +780,7 @@ def fit_positions(
     second_order: bool | None = None,
     shared_f0: bool | None = None,
     level: bool | None = None,
+    alternate: tuple[MapSet, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
     the maps by ``iterations`` Gauss–Newton steps (when None, ``SHARED_ITERATIONS`` with a
@@ -785,7 +797,9 @@ def fit_positions(
     the pixels to use; ``maps`` are maps fitted to its photos divided by ``gains`` (the
     start), which are gains times any intensity scale of that fit. Directional lights keep
     their directions. Returns the positions, the gains (the start's overall factor, and
-    without ``level`` its gradient across the dome, kept) and a record."""
+    without ``level`` its gradient across the dome, kept) and a record. ``alternate``: other
+    start maps and their gains (``WEAK_START``), fitted from too, on the same pixels under
+    the same noise model; the end that fits the photos best is kept."""
     n = len(capture.files)
     lights = _double(capture.lights)
     near = lights.w > 0.5
@@ -806,21 +820,15 @@ def fit_positions(
         valid=(~capture.saturation(list(range(n)))).to(F64).reshape(n, 1, -1).expand(n, 3, -1),
         level=selfcal.LEVEL if level is None else level,
     )
-    spec = maps.specular.to(F64).reshape(maps.specular.shape[0], -1).expand(3, -1)
-    th = torch.cat(
-        [
-            maps.diffuse.to(F64).reshape(3, -1),
-            spec.clone(),
-            lm._theta_of(maps.roughness.to(F64), maps.normal.to(F64)).reshape(3, -1),
-        ]
-    )
+    th = _numbers(maps)
     pairs = BIAS_PAIRS if bias_pairs is None else bias_pairs
     second = pairs == 0 and (SECOND_ORDER if second_order is None else second_order)
     shared = SHARED_F0 if shared_f0 is None else shared_f0
     if iterations is None:
         iterations = SHARED_ITERATIONS if shared else ITERATIONS
     fit = _solve(photos, th, gains.to(F64).log(), iterations, progress, held=second, shared_f0=shared)
-    roughness = None  # which start's end was kept where an F0 was shared
+    roughness = None  # which start's end was kept where an F0 was shared, or the weak start's
+    ends = {"start": fit.cost}  # each start's misfit per value at its end
     if shared and fit.shared is not None and bool(fit.shared.any()):
         # once more with every pixel's roughness searched at the shared F0's start: the end that
         # fits the photos better is kept (``_F0_GRID``; the start's roughness suits rough
@@ -828,7 +836,23 @@ def fit_positions(
         later = None if progress is None else (lambda i: progress(iterations + i))
         lg0 = gains.to(F64).log()
         other = _solve(photos, th, lg0, iterations, later, held=second, shared_f0=True, searched=True, scan=fit.scan)
+        ends["searched"] = other.cost
         fit, roughness = (other, "searched") if other.cost < fit.cost else (fit, "start")
+    if alternate is not None:  # from other start maps, on the same pixels and in the same units
+        later = None if progress is None else (lambda i: progress(len(ends) * iterations + i))
+        weak = _solve(
+            photos,
+            _numbers(alternate[0]),
+            alternate[1].to(F64).log(),
+            iterations,
+            later,
+            held=second,
+            shared_f0=shared,
+            fixed=(fit.noise, fit.used),
+        )
+        ends["weak"] = weak.cost
+        if weak.cost < fit.cost:
+            fit, roughness = weak, "weak"
     if pairs > 0:
         pos, lg, bias = _debiased(photos, fit, pairs, iterations, progress)
     elif second:
@@ -844,6 +868,7 @@ def fit_positions(
         "misfit_per_value": {  # robust, in units of the noise model read from the start's residuals
             "start": round(fit.first, 4),
             "end": round(fit.cost, 4),
+            **({"ends": {k: round(v, 4) for k, v in ends.items()}} if len(ends) > 1 else {}),
         },
         "moved_mm": _mean_max(shift),
         "bias": bias,
@@ -854,13 +879,21 @@ def fit_positions(
         record["shared_f0"] = {
             "share": round(float(fit.shared.double().mean()), 4),
             "value": None if one is None else [round(float(v), 4) for v in one],
-            "roughness": roughness,  # the kept end's start: "start" (the maps'), "searched", None
+            "roughness": roughness,  # the kept end's start: "start" (the maps'), "searched", "weak", None
             # the scan's best value: where the steps started it, or why none was shared
             "scanned": None if fit.scan is None else round(fit.scan[1], 4),
             # its standard error from the photos' noise (None: none shared, or held)
             "se": None if fit.f0_spread is None else [round(float(v), 4) for v in fit.f0_spread],
         }
     return pos.float(), lg.exp().float(), record
+
+
+def _numbers(maps: MapSet) -> Tensor:
+    """Every pixel's 9 numbers (9, P) of ``maps``: ρ and F0 per channel, roughness and the
+    normal's two slopes."""
+    spec = maps.specular.to(F64).reshape(maps.specular.shape[0], -1).expand(3, -1)
+    slopes = lm._theta_of(maps.roughness.to(F64), maps.normal.to(F64)).reshape(3, -1)
+    return torch.cat([maps.diffuse.to(F64).reshape(3, -1), spec.clone(), slopes])
 
 
 def _lit_from(capture: Capture, pos: Tensor) -> Capture:
@@ -982,10 +1015,15 @@ def estimate_positions(
         held["prior_roughness"] *= START_ROUGHNESS_PRIOR
         start_cfg = replace(fit_cfg, lm=replace(cfg.lm, **held))
     start = reconstruct_capture(with_gains(small, gains), start_cfg, None)
+    alternate = None
+    if WEAK_START > 0:  # a third start, its maps held less near the solver's flat start
+        weak_cfg = replace(fit_cfg, lm=replace(cfg.lm, **{k: getattr(cfg.lm, k) * WEAK_START for k in _PRIORS}))
+        weak = reconstruct_capture(with_gains(small, gains), weak_cfg, None)
+        alternate = (weak.maps, gains * weak.intensity_scale)
     shared = SHARED_F0 if cfg.shared_f0 is None else cfg.shared_f0
     level = selfcal.fits_gradient(capture, cfg) if level is None else level
     steps = SHARED_ITERATIONS if shared else ITERATIONS
-    total = steps * (1 + 2 * BIAS_PAIRS + (1 if shared else 0))  # the shared F0's second start
+    total = steps * (1 + 2 * BIAS_PAIRS + (1 if shared else 0) + (alternate is not None))  # the other starts
     tilt = selfcal.median_slope(start.maps)  # the start's, which the fit holds under the level convention
     if level and LEVEL_START:
         start = replace(start, maps=selfcal.levelled(start.maps))
@@ -998,6 +1036,7 @@ def estimate_positions(
             progress=lambda i: bar.update(i - bar.n),
             shared_f0=shared,
             level=level,
+            alternate=alternate,
         )
     record["reduced_by"] = factor
     if level:  # the start's median slope (x, y), and whether the fit started with it removed
