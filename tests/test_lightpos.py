@@ -529,7 +529,8 @@ def test_the_weak_start_is_the_solvers_maps_with_weaker_priors(monkeypatch):
     monkeypatch.setattr(lightpos, "WEAK_START", 0.01)
     monkeypatch.setattr(lightpos, "SHARED_ITERATIONS", 2)
     monkeypatch.setattr(lightpos, "LEVEL_TURNS", 0)
-    _, _, record, _ = estimate_positions(cap, gains, ReconstructConfig(model="none", refine="on", solver="lm"), level=True)
+    cfg = ReconstructConfig(model="none", refine="on", solver="lm")
+    _, _, record, _ = estimate_positions(cap, gains, cfg, level=True)
     own = ReconstructConfig().lm
     assert seen == [own, replace(own, **{k: getattr(own, k) * 0.01 for k in lightpos._PRIORS})]
     ends = record["misfit_per_value"]["ends"]
