@@ -92,7 +92,7 @@ priors times K (``lightpos.START_PRIOR``, 1 by default), ``--start-roughness-pri
 with its roughness prior alone times K (``START_ROUGHNESS_PRIOR``), the maps after it
 as before. ``--weak-start=K`` adds a third start, the solver's maps with its priors times
 K, whose end is kept where it fits the photos better (``lightpos.WEAK_START``; ``--record``
-prints each start's misfit at its end, ``ends``); where its end was kept, a line "without
+prints each start's misfit at its end, ``ends``); where its end was kept, a last line "without
 weak" gives the same photos' fit without it (the default), so that the two pair.
 
 ``--variants`` (with ``--own-f0 --steps=30 --pairs=1``) scores the joint fit four ways: its end
@@ -763,14 +763,6 @@ def main() -> None:
                     fit = reconstruct_capture(with_gains(lightpos._lit_from(cap, pos), g2), cfg)
                     report(f"{'':4s}by {by}", pos, true, maps, rig, (ideal, plain, gains_only, fit))
                     print(f"{'':16s} {json.dumps(done)}", flush=True)
-            if fitted.get("shared_f0", {}).get("roughness") == "weak":  # the same photos without the third start
-                lightpos.WEAK_START, weak = 0.0, lightpos.WEAK_START
-                try:
-                    other, g3, _, _ = estimate_positions(cap, g1, cfg, level=level)
-                finally:
-                    lightpos.WEAK_START = weak
-                fit = reconstruct_capture(with_gains(replace(cap, lights=other), g3), cfg)
-                report(f"{'':4s}without weak", other.position, true, maps, rig, (ideal, plain, gains_only, fit))
             if "--validate-choice" in sys.argv:  # the photos left out, predicted with either set of lights
                 from matscan.reconstruct.job import leave_out_validation
 
@@ -811,6 +803,15 @@ def main() -> None:
                     f"true ({mean_slope(maps)[0]:+.4f}, {mean_slope(maps)[1]:+.4f})",
                     flush=True,
                 )
+            if fitted["misfit_per_value"].get("kept") == "weak":  # the same photos without the third start
+                lightpos.WEAK_START, weak = 0.0, lightpos.WEAK_START
+                try:
+                    with true_start(maps, size) if "--true-start" in sys.argv else contextlib.nullcontext():
+                        other, g3, _, _ = estimate_positions(cap, g1, cfg, level=level)
+                finally:
+                    lightpos.WEAK_START = weak
+                fit = reconstruct_capture(with_gains(replace(cap, lights=other), g3), cfg)
+                report(f"{'':4s}without weak", other.position, true, maps, rig, (ideal, plain, gains_only, fit))
             continue
         if "--full" in sys.argv:
             pos = full_positions(with_gains(cap, g1))

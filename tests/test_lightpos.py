@@ -503,15 +503,21 @@ def test_a_third_start_is_fitted_on_the_same_pixels_in_the_same_units(drifted):
     )
     ends = both["misfit_per_value"]["ends"]
     assert both["shared_f0"]["roughness"] == "weak" and ends["weak"] < min(ends["start"], ends["searched"])
-    assert both["misfit_per_value"]["end"] == ends["weak"]
+    assert both["misfit_per_value"]["end"] == ends["weak"] and both["misfit_per_value"]["kept"] == "weak"
+    # the third end's misfit is of the first start's pixels under its noise model, which the
+    # true maps' own residuals would have read otherwise
+    assert both["noise_model"] == one["noise_model"] and both["pixels_used"] == one["pixels_used"]
+    _, _, own = fit_positions(cap, maps, gains, iterations=0, bias_pairs=0, shared_f0=True, level=False)
+    assert own["noise_model"] != one["noise_model"]
     assert {k: ends[k] for k in ("start", "searched")} == one["misfit_per_value"]["ends"]
     err = float((pos - truth.position).norm(dim=1).mean())
     assert err < float((alone - truth.position).norm(dim=1).mean()), err
 
 
 def test_the_weak_start_is_the_solvers_maps_with_weaker_priors(monkeypatch):
-    """``WEAK_START`` = K fits a third start with every ``lm`` prior times K, and the record
-    says which start's end was kept and each end's misfit."""
+    """``WEAK_START`` = K fits a third start with every ``lm`` prior times K (and the turns
+    are none here), and the record says which start's end was kept, the one of lowest
+    misfit."""
     from matscan.reconstruct import job
 
     maps = generate("paper", 16, 1)
@@ -533,8 +539,11 @@ def test_the_weak_start_is_the_solvers_maps_with_weaker_priors(monkeypatch):
     _, _, record, _ = estimate_positions(cap, gains, cfg, level=True)
     own = ReconstructConfig().lm
     assert seen == [own, replace(own, **{k: getattr(own, k) * 0.01 for k in lightpos._PRIORS})]
-    ends = record["misfit_per_value"]["ends"]
-    assert "weak" in ends and record["misfit_per_value"]["end"] == min(ends.values())
+    mpv = record["misfit_per_value"]
+    assert "weak" in mpv["ends"] and mpv["end"] == min(mpv["ends"].values())
+    assert mpv["ends"][mpv["kept"]] == mpv["end"]
+    if "shared_f0" in record and mpv["kept"] == "weak":
+        assert record["shared_f0"]["roughness"] == "weak"
 
 
 def test_a_grey_shared_f0_stays_grey_through_the_steps(drifted, monkeypatch):

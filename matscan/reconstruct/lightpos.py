@@ -799,7 +799,8 @@ def fit_positions(
     their directions. Returns the positions, the gains (the start's overall factor, and
     without ``level`` its gradient across the dome, kept) and a record. ``alternate``: other
     start maps and their gains (``WEAK_START``), fitted from too, on the same pixels under
-    the same noise model; the end that fits the photos best is kept."""
+    the same noise model (its own shared F0's scan and pixels, no roughness searched); the
+    end that fits the photos best is kept."""
     n = len(capture.files)
     lights = _double(capture.lights)
     near = lights.w > 0.5
@@ -828,7 +829,7 @@ def fit_positions(
         iterations = SHARED_ITERATIONS if shared else ITERATIONS
     fit = _solve(photos, th, gains.to(F64).log(), iterations, progress, held=second, shared_f0=shared)
     roughness = None  # which start's end was kept where an F0 was shared, or the weak start's
-    ends = {"start": fit.cost}  # each start's misfit per value at its end
+    ends, kept = {"start": fit.cost}, "start"  # each start's misfit per value at its end, and which was kept
     if shared and fit.shared is not None and bool(fit.shared.any()):
         # once more with every pixel's roughness searched at the shared F0's start: the end that
         # fits the photos better is kept (``_F0_GRID``; the start's roughness suits rough
@@ -838,6 +839,7 @@ def fit_positions(
         other = _solve(photos, th, lg0, iterations, later, held=second, shared_f0=True, searched=True, scan=fit.scan)
         ends["searched"] = other.cost
         fit, roughness = (other, "searched") if other.cost < fit.cost else (fit, "start")
+        kept = roughness
     if alternate is not None:  # from other start maps, on the same pixels and in the same units
         later = None if progress is None else (lambda i: progress(len(ends) * iterations + i))
         weak = _solve(
@@ -852,9 +854,11 @@ def fit_positions(
         )
         ends["weak"] = weak.cost
         if weak.cost < fit.cost:
-            fit, roughness = weak, "weak"
+            fit, roughness, kept = weak, "weak", "weak"
     if pairs > 0:
-        pos, lg, bias = _debiased(photos, fit, pairs, iterations, progress)
+        done = (len(ends) - 1) * iterations  # the other starts' steps
+        step = None if progress is None else (lambda i: progress(done + i))
+        pos, lg, bias = _debiased(photos, fit, pairs, iterations, step)
     elif second:
         pos, lg, bias = _second_order(photos, fit)
     else:
@@ -865,10 +869,10 @@ def fit_positions(
         "pixels_used": round(float(fit.used.double().mean()), 4),
         "iterations": iterations,
         "noise_model": {"a": _sig4(fit.noise[0]), "b": _sig4(fit.noise[1])},  # var = a·m + b
-        "misfit_per_value": {  # robust, in units of the noise model read from the start's residuals
+        "misfit_per_value": {  # robust, in units of the noise model read from the first start's residuals
             "start": round(fit.first, 4),
             "end": round(fit.cost, 4),
-            **({"ends": {k: round(v, 4) for k, v in ends.items()}} if len(ends) > 1 else {}),
+            **({"ends": {k: round(v, 4) for k, v in ends.items()}, "kept": kept} if len(ends) > 1 else {}),
         },
         "moved_mm": _mean_max(shift),
         "bias": bias,
@@ -1027,6 +1031,8 @@ def estimate_positions(
     tilt = selfcal.median_slope(start.maps)  # the start's, which the fit holds under the level convention
     if level and LEVEL_START:
         start = replace(start, maps=selfcal.levelled(start.maps))
+        if alternate is not None:
+            alternate = (selfcal.levelled(alternate[0]), alternate[1])
     with tqdm(total=total, desc="positions", unit="step", disable=not progress, leave=False) as bar:
         pos, fitted, record = fit_positions(
             small,
