@@ -92,8 +92,10 @@ priors times K (``lightpos.START_PRIOR``, 1 by default), ``--start-roughness-pri
 with its roughness prior alone times K (``START_ROUGHNESS_PRIOR``), the maps after it
 as before. ``--weak-start=K`` adds a third start, the solver's maps with its priors times
 K, whose end is kept where it fits the photos better (``lightpos.WEAK_START``; ``--record``
-prints each start's misfit at its end, ``ends``); where its end was kept, a last line "without
-weak" gives the same photos' fit without it (the default), so that the two pair.
+prints each start's misfit at its end, ``ends``), ``--weak-margin=M`` keeps it only where
+its misfit is lower by more than the share M (``lightpos.WEAK_MARGIN``); where its end was
+kept, a last line "without weak" gives the same photos' fit without it (the default), so
+that the two pair.
 
 ``--variants`` (with ``--own-f0 --steps=30 --pairs=1``) scores the joint fit four ways: its end
 with the bias left in, the pair's correction on positions and gains (``BIAS_PAIRS``), on
@@ -150,8 +152,8 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] 
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
-[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--variants] [--validate-choice]
-[--held-out|--others] [--only=NAMES]
+[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M]
+[--variants] [--validate-choice] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
 
@@ -579,6 +581,8 @@ def main() -> None:
             lightpos.START_ROUGHNESS_PRIOR = float(a.split("=", 1)[1])
         if a.startswith("--weak-start="):  # a third start, the solver's priors times K (lightpos.WEAK_START)
             lightpos.WEAK_START = float(a.split("=", 1)[1])
+        if a.startswith("--weak-margin="):  # kept only where it fits better by this share (lightpos.WEAK_MARGIN)
+            lightpos.WEAK_MARGIN = float(a.split("=", 1)[1])
         if a == "--hold-f0":  # the shared F0 held at its scan's value through the steps (lightpos.HOLD_F0)
             lightpos.HOLD_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
