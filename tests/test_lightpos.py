@@ -479,7 +479,7 @@ def test_the_joint_fits_start_holds_its_roughness_as_asked(monkeypatch, scale):
         assert abs(roughness - 0.9) < 0.1, roughness
 
 
-def test_a_third_start_is_fitted_on_the_same_pixels_in_the_same_units(drifted):
+def test_a_third_start_is_fitted_on_the_same_pixels_in_the_same_units(drifted, monkeypatch):
     """``alternate`` start maps (``WEAK_START``) are fitted from as the other two starts
     are, on their pixels and under their noise model: the same maps as the start end with
     exactly its misfit (so the misfits compare), and the start kept; the true maps, beside
@@ -512,6 +512,14 @@ def test_a_third_start_is_fitted_on_the_same_pixels_in_the_same_units(drifted):
     assert {k: ends[k] for k in ("start", "searched")} == one["misfit_per_value"]["ends"]
     err = float((pos - truth.position).norm(dim=1).mean())
     assert err < float((alone - truth.position).norm(dim=1).mean()), err
+    # with a margin wider than the third end's lead it is not kept, and the fit is the first two's
+    lead = 1 - ends["weak"] / min(ends["start"], ends["searched"])
+    monkeypatch.setattr(lightpos, "WEAK_MARGIN", lead + 0.01)
+    held, _, narrow = fit_positions(
+        cap, smooth, gains, iterations=4, bias_pairs=0, shared_f0=True, level=False, alternate=(maps, gains)
+    )
+    assert narrow["misfit_per_value"]["kept"] != "weak" and narrow["misfit_per_value"]["ends"] == ends
+    assert torch.equal(held, alone)
 
 
 def test_the_weak_start_is_the_solvers_maps_with_weaker_priors(monkeypatch):
