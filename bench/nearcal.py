@@ -95,7 +95,8 @@ K, whose end is kept where it fits the photos better (``lightpos.WEAK_START``; `
 prints each start's misfit at its end, ``ends``), ``--weak-margin=M`` keeps it only where
 its misfit is lower by more than the share M (``lightpos.WEAK_MARGIN``); where its end was
 kept, a last line "without weak" gives the same photos' fit without it (the default), so
-that the two pair.
+that the two pair. ``--ends`` prints each start's end (its misfit, its lights' error
+before the turns, its shared F0 and share, its median roughness).
 
 ``--variants`` (with ``--own-f0 --steps=30 --pairs=1``) scores the joint fit four ways: its end
 with the bias left in, the pair's correction on positions and gains (``BIAS_PAIRS``), on
@@ -152,7 +153,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] 
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
-[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M]
+[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--ends]
 [--variants] [--validate-choice] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -481,18 +482,43 @@ def positions_and_unturned(cap: Capture, g1: torch.Tensor, cfg: ReconstructConfi
     before the turns first. The turns come after the fit and change nothing else, so
     those are the positions the default gives, and other turns can start from them."""
     seen = []
-    turn = lightpos._turned_level
+    turn, solve = lightpos._turned_level, lightpos._solve
+    SOLVED.clear()
 
     def watched(*args):
         seen.append(args)
         return turn(*args)
 
-    lightpos._turned_level = watched
+    def solved(*args, **kwargs):
+        SOLVED.append(solve(*args, **kwargs))
+        return SOLVED[-1]
+
+    lightpos._turned_level, lightpos._solve = watched, solved
     try:
         lights, g2, fitted, _ = estimate_positions(cap, g1, cfg, level=level)
     finally:
-        lightpos._turned_level = turn
+        lightpos._turned_level, lightpos._solve = turn, solve
     return lights, g2, fitted, seen[0] if seen else None
+
+
+#: The joint fit's ends (``lightpos._Solved``) from each of its starts, in the order it ran them,
+#: as the last ``positions_and_unturned`` saw them (``--ends`` prints them).
+SOLVED: list = []
+
+
+def print_ends(true: LightSet) -> None:
+    """``--ends``: each start's end: its misfit, its lights' mean error (mm, before the
+    turns), the share of its pixels sharing one F0 and that F0, its pixels' median
+    roughness."""
+    parts = []
+    for end in SOLVED:
+        err = float((end.pos.float() - true.position).norm(dim=1).mean())
+        share = 0.0 if end.shared is None else float(end.shared.double().mean())
+        f0 = f"{float(end.th[3, end.shared][0]):.4f}" if share > 0 else "-"
+        parts.append(
+            f"misfit {end.cost:.4f} {err:.2f} mm share {share:.2f} F0 {f0} roughness {float(end.th[6].median()):.3f}"
+        )
+    print(f"{'':16s} ends: " + " | ".join(parts), flush=True)
 
 
 @contextlib.contextmanager
@@ -777,6 +803,8 @@ def main() -> None:
                     + ", ".join(f"{k} {v['rmse_left_out']:.6f} / {v['psnr_left_out']:.2f}" for k, v in scores.items()),
                     flush=True,
                 )
+            if "--ends" in sys.argv:  # each start's end
+                print_ends(true)
             if "--record" in sys.argv:  # what the joint fit found besides the lights
                 keys = ("pixels_used", "misfit_per_value", "shared_f0", "level_turns")
                 shown = {k: fitted[k] for k in keys if k in fitted}
