@@ -1,0 +1,68 @@
+"""The weak start's rules read from bench/nearcal.py's logs in this folder (docs/rti.md):
+per run, the mean final PSNR (a), the count within 0.5 dB of the ideal dome (c) and the
+fitted materials' mean light error (d) without → with the third start (the "without weak"
+line where its end was kept, else the first line), then each material whose end changed,
+with the share by which its third end's misfit was lower.
+``python runs/nearcal-weak/rule.py s256-d1 [--margin=M]``: with ``--margin`` the third
+end counts as kept only where that share is above M (``lightpos.WEAK_MARGIN``)."""
+
+import glob
+import json
+import re
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).parent
+
+
+def parse(paths):
+    rows = {}
+    cur = None
+    for p in paths:
+        for line in open(p):
+            m = re.match(
+                r"^(\S.*?)\s+(-?\d+\.\d+)\s+(-?\d+\.\d+)\s+(-?\d+\.\d+)\s+(-?\d+\.\d+)\s+(-?\d+\.\d+)\s+(-?\d+\.\d+)\s*$",
+                line,
+            )
+            if m and not line.startswith(" "):
+                name = m.group(1).strip()
+                mean, mx, ideal, nom, gains, fin = map(float, m.groups()[1:])
+                cur = name
+                rows[name] = dict(mm=mean, ideal=ideal, final=fin, wmm=mean, wfinal=fin, fitted=not name.endswith("*"))
+            elif line.lstrip().startswith("{") and cur:
+                rec = json.loads(line.strip().split("}; the positions")[0] + "}")
+                ends = rec["misfit_per_value"].get("ends", {})
+                others = [v for k, v in ends.items() if k != "weak"]
+                if "weak" in ends:
+                    rows[cur]["margin"] = (min(others) - ends["weak"]) / min(others)
+                    rows[cur]["share"] = rec.get("shared_f0", {}).get("share")
+            elif line.startswith("    without weak") and cur:
+                v = [float(x) for x in line.split()[2:]]
+                rows[cur]["wmm"], rows[cur]["wfinal"] = v[0], v[5]
+    return rows
+
+
+margin = next((float(a.split("=")[1]) for a in sys.argv[1:] if a.startswith("--margin=")), 0.0)
+runs = [a for a in sys.argv[1:] if not a.startswith("--")]
+for run in runs:
+    paths = sorted(glob.glob(f"{HERE}/{run}*.log"))
+    rows = parse(paths)
+    for r in rows.values():  # the weak end kept only above the margin: else the fit without it
+        if "margin" in r and r["margin"] <= margin:
+            r["mm"], r["final"] = r["wmm"], r["wfinal"]
+    n = len(rows)
+    a_with = sum(r["final"] for r in rows.values()) / n
+    a_wo = sum(r["wfinal"] for r in rows.values()) / n
+    c_with = sum(r["ideal"] - r["final"] <= 0.5 for r in rows.values())
+    c_wo = sum(r["ideal"] - r["wfinal"] <= 0.5 for r in rows.values())
+    fit = [r for r in rows.values() if r["fitted"]]
+    d_with = sum(r["mm"] for r in fit) / len(fit)
+    d_wo = sum(r["wmm"] for r in fit) / len(fit)
+    print(
+        f"{run}: {n} materials, (a) {a_wo:.3f} -> {a_with:.3f} ({a_with - a_wo:+.3f}) (c) {c_wo} -> {c_with} (d) {len(fit)} fitted {d_wo:.3f} -> {d_with:.3f} mm"
+    )
+    for k, r in rows.items():
+        if r["wfinal"] != r["final"] or r["wmm"] != r["mm"]:
+            print(
+                f"   {k:16s} below ideal {r['ideal'] - r['wfinal']:.2f} -> {r['ideal'] - r['final']:.2f}, {r['wmm']:.2f} -> {r['mm']:.2f} mm, margin {100 * r.get('margin', float('nan')):.2f}%, share {r.get('share')}"
+            )
