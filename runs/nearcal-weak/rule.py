@@ -59,10 +59,13 @@ for run in runs:
     d_with = sum(r["mm"] for r in fit) / len(fit)
     d_wo = sum(r["wmm"] for r in fit) / len(fit)
     print(
-        f"{run}: {n} materials, (a) {a_wo:.3f} -> {a_with:.3f} ({a_with - a_wo:+.3f}) (c) {c_wo} -> {c_with} (d) {len(fit)} fitted {d_wo:.3f} -> {d_with:.3f} mm"
+        f"{run}: {n} materials, (a) {a_wo:.3f} -> {a_with:.3f} ({a_with - a_wo:+.3f}) (c) {c_wo} -> {c_with} "
+        f"(d) {len(fit)} fitted {d_wo:.3f} -> {d_with:.3f} mm"
     )
     for k, r in rows.items():
         if r["wfinal"] != r["final"] or r["wmm"] != r["mm"]:
             print(
-                f"   {k:16s} below ideal {r['ideal'] - r['wfinal']:.2f} -> {r['ideal'] - r['final']:.2f}, {r['wmm']:.2f} -> {r['mm']:.2f} mm, margin {100 * r.get('margin', float('nan')):.2f}%, share {r.get('share')}"
+                f"   {k:16s} below ideal {r['ideal'] - r['wfinal']:.2f} -> {r['ideal'] - r['final']:.2f}, "
+                f"{r['wmm']:.2f} -> {r['mm']:.2f} mm, margin {100 * r.get('margin', float('nan')):.2f}%, "
+                f"share {r.get('share')}"
             )
