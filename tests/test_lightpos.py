@@ -55,6 +55,15 @@ def _photos(maps, offsets, gains, noise, seed=1):
     return (photos + noise * torch.randn(photos.shape, generator=torch.Generator().manual_seed(seed))).clamp(0, 1)
 
 
+def _at_rig_file(maps) -> tuple[Capture, Tensor]:
+    """Float photos (noise 0.002) of ``maps`` under the LEDs moved by ``_offsets`` with
+    ``_gains``, as a capture that gives the rig file's places, and those gains."""
+    offsets, gains = _offsets(), _gains()
+    photos = _photos(maps, offsets, gains, noise=0.002)
+    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
+    return Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES), gains
+
+
 def test_positions_come_back_from_photos_of_a_relief():
     """Float photos with little noise of an embossed leather under LEDs ±5 mm off: started
     from the rig file's places and the maps fitted there, the joint fit finds the LEDs
@@ -454,10 +463,7 @@ def test_the_joint_fits_start_holds_its_roughness_as_asked(monkeypatch, scale):
 
     maps = generate("paper", 32, 1)
     maps = MapSet(**{**maps.present(), "roughness": torch.full_like(maps.roughness, 0.9)})
-    offsets, gains = _offsets(), _gains()
-    photos = _photos(maps, offsets, gains, noise=0.002)
-    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
-    cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES)
+    cap, gains = _at_rig_file(maps)
     solver, fits = job.reconstruct_capture, []
 
     def watched(capture, cfg, *args, **kwargs):
@@ -529,10 +535,7 @@ def test_the_weak_start_is_the_solvers_maps_with_weaker_priors(monkeypatch):
     from matscan.reconstruct import job
 
     maps = generate("paper", 16, 1)
-    offsets, gains = _offsets(), _gains()
-    photos = _photos(maps, offsets, gains, noise=0.002)
-    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
-    cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES)
+    cap, gains = _at_rig_file(maps)
     solver, seen = job.reconstruct_capture, []
 
     def watched(capture, cfg, *args, **kwargs):
