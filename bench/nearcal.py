@@ -96,7 +96,9 @@ prints each start's misfit at its end, ``ends``), ``--weak-margin=M`` keeps it o
 its misfit is lower by more than the share M (``lightpos.WEAK_MARGIN``); where its end was
 kept, a last line "without weak" gives the same photos' fit without it (the default), so
 that the two pair. ``--ends`` prints each start's end (its misfit, its lights' error
-before the turns, its shared F0 and share, its median roughness).
+before the turns, its shared F0 and share, its median roughness). ``--weak-own`` fits the
+third start with its own pixels sharing an F0 and its own scan (``lightpos.WEAK_SAME``
+False; by default those of the first start, so that the three ends fit the same unknowns).
 
 ``--variants`` (with ``--own-f0 --steps=30 --pairs=1``) scores the joint fit four ways: its end
 with the bias left in, the pair's correction on positions and gains (``BIAS_PAIRS``), on
@@ -153,7 +155,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] 
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
-[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--ends]
+[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own] [--ends]
 [--variants] [--validate-choice] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -609,6 +611,8 @@ def main() -> None:
             lightpos.WEAK_START = float(a.split("=", 1)[1])
         if a.startswith("--weak-margin="):  # kept only where it fits better by this share (lightpos.WEAK_MARGIN)
             lightpos.WEAK_MARGIN = float(a.split("=", 1)[1])
+        if a == "--weak-own":  # the third start with its own sharing pixels and scan (lightpos.WEAK_SAME)
+            lightpos.WEAK_SAME = False
         if a == "--hold-f0":  # the shared F0 held at its scan's value through the steps (lightpos.HOLD_F0)
             lightpos.HOLD_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)

@@ -528,6 +528,39 @@ def test_a_third_start_is_fitted_on_the_same_pixels_in_the_same_units(drifted, m
     assert torch.equal(held, alone)
 
 
+def test_the_third_start_shares_the_f0_among_the_first_starts_pixels(drifted, monkeypatch):
+    """With ``WEAK_SAME`` the third start's F0 is shared by the pixels that share it in the
+    first start, even where its own maps call a pixel a metal (F0 0.5 on a quarter of the
+    grass here), and starts at the first start's scan, so the three ends fit the same
+    unknowns; without, it is shared by the used pixels its own maps call dielectric (F0
+    below ``SHARED_BELOW`` in every channel), read here from the maps themselves."""
+    cap, maps, gains, _, _ = drifted
+    spec = maps.specular.clone()
+    spec[:, :32, :32] = 0.5  # a quarter of the pixels a metal's, in the third start alone
+    metal = MapSet(**{**maps.present(), "specular": spec})
+    solve, ends = lightpos._solve, []
+
+    def watched(*args, **kwargs):
+        ends.append(solve(*args, **kwargs))
+        return ends[-1]
+
+    monkeypatch.setattr(lightpos, "_solve", watched)
+    for same in (True, False):
+        ends.clear()
+        monkeypatch.setattr(lightpos, "WEAK_SAME", same)
+        fit_positions(
+            cap, maps, gains, iterations=0, bias_pairs=0, shared_f0=True, level=False, alternate=(metal, gains)
+        )
+        first, _, third = ends  # the start, the searched start, the third start
+        assert first.shared is not None and bool(first.shared.all())  # the grass: a dielectric everywhere
+        if same:
+            assert torch.equal(third.shared, first.shared)
+            assert torch.equal(third.th[3:6, third.shared], torch.full_like(third.th[3:6, third.shared], first.scan[1]))
+        else:
+            own = (spec.reshape(3, -1) < lightpos.SHARED_BELOW).all(0)[first.used]
+            assert torch.equal(third.shared, own) and 0.7 < float(own.double().mean()) < 0.8
+
+
 def test_the_weak_start_is_the_solvers_maps_with_weaker_priors(monkeypatch):
     """``WEAK_START`` = K fits a third start with every ``lm`` prior times K (and the turns
     are none here), and the record says which start's end was kept, the one of lowest

@@ -233,6 +233,11 @@ WEAK_START = 0.0
 #: than this share of it: on draw 1 of bench/nearcal.py at 256² a photographed grass's
 #: third end fitted 0.12% better with its lights 1.44 mm off for 0.74, 3.3 dB lower.
 WEAK_MARGIN = 0.0
+#: The weak start's F0 is shared by the first start's pixels, started at its scan's value
+#: (True), so that all three ends fit the same unknowns; False: by the pixels its own maps
+#: call dielectric, at its own scan's value (on draw 1 at 256² the grass's and gravel's
+#: third ends then shared among 88% of the pixels, the others among all, docs/rti.md).
+WEAK_SAME = True
 _PRIORS = ("prior_diffuse", "prior_specular", "prior_roughness", "prior_normal")
 #: With ``SECOND_ORDER``, each pixel's numbers spread at most as if uniform over their
 #: physical range (ρ and F0 in [0, 1], roughness in [0.02, 1], the slopes within ±√3,
@@ -581,6 +586,7 @@ def _solve(
     searched: bool = False,
     scan: tuple[Tensor, float] | None = None,
     fixed: tuple[tuple[float, float], Tensor] | None = None,
+    sharing: Tensor | None = None,
 ) -> _Solved:
     """Gauss–Newton over the lights' positions and log gains and every pixel's 9 numbers
     ``th`` (9, P), started at ``photos.lights``' positions and ``lg`` (module doc). With
@@ -592,7 +598,9 @@ def _solve(
     ``searched`` every pixel starts at the roughness searched there, else at the start's;
     ``scan``: that scan, from an earlier call on the same photos and start. ``fixed``: the
     noise model and the pixels kept of an earlier call (:class:`_Solved`'s ``noise`` and
-    ``used``), so that the two ends' misfits are of the same pixels in the same units."""
+    ``used``), so that the two ends' misfits are of the same pixels in the same units;
+    ``sharing``: with them and that call's ``scan``, which kept pixels share the F0 (its
+    ``shared``), in place of those whose start's F0 is a dielectric's."""
     lights, aims, pts, y, valid = photos.lights, photos.aims, photos.pts, photos.y, photos.valid
     n = len(lights)
     pos = lights.position.clone()
@@ -608,6 +616,8 @@ def _solve(
     level = photos.level
     basis = _free_directions(lights, photos.near, gradient=level)
     shared = (th[3:6] < SHARED_BELOW).all(0) if shared_f0 else torch.zeros(th.shape[1], dtype=torch.bool)
+    if shared_f0 and sharing is not None:
+        shared = sharing.clone()
     if shared.any():
         scan = scan or _shared_start(th, shared, _placed(lights, aims, pos, lg.exp()), pts, y, wt)
         scanned, f0 = scan
@@ -813,8 +823,9 @@ def fit_positions(
     their directions. Returns the positions, the gains (the start's overall factor, and
     without ``level`` its gradient across the dome, kept) and a record. ``alternate``: other
     start maps and their gains (``WEAK_START``), fitted from too, on the same pixels under
-    the same noise model (its own shared F0's scan and pixels, no roughness searched); the
-    end that fits the photos best is kept."""
+    the same noise model (with ``WEAK_SAME`` the same pixels sharing the F0, started at the
+    first start's scan, else its own; no roughness searched); the end that fits the photos
+    best is kept."""
     n = len(capture.files)
     lights = _double(capture.lights)
     near = lights.w > 0.5
@@ -865,6 +876,8 @@ def fit_positions(
             held=second,
             shared_f0=shared,
             fixed=(fit.noise, fit.used),
+            scan=fit.scan if WEAK_SAME else None,
+            sharing=fit.shared if WEAK_SAME else None,
         )
         ends["weak"] = weak.cost
         if weak.cost < (1 - WEAK_MARGIN) * fit.cost:
