@@ -1,10 +1,13 @@
-"""The weak start's rules read from bench/nearcal.py's logs in this folder (docs/rti.md):
-per run, the mean final PSNR (a), the count within 0.5 dB of the ideal dome (c) and the
-fitted materials' mean light error (d) without → with the third start (the "without weak"
-line where its end was kept, else the first line), then each material whose end changed,
-with the share by which its third end's misfit was lower.
-``python runs/nearcal-weak/rule.py s256-d1 [--margin=M]``: with ``--margin`` the third
-end counts as kept only where that share is above M (``lightpos.WEAK_MARGIN``)."""
+"""The third start's rules (docs/rti.md) read from bench/nearcal.py's logs in nearcal-weak/
+and nearcal-same/: per run, the mean final PSNR (a), the count within 0.5 dB of the ideal
+dome (c) and the fitted materials' mean light error (d) without → with the third start
+(the "without weak" line where its end was kept, else the first line), then each material
+whose end changed, with the share by which its third end's misfit was lower; over two
+runs or more, (b): each material's distance below its ideal averaged over the runs,
+without → with, those more than 0.1 dB farther marked.
+``python runs/nearcal_rule.py nearcal-same/s256-d1 [nearcal-same/s128-d1 ...] [--margin=M]``
+(each run the logs whose names start so): with ``--margin`` the third end counts as kept
+only where that share is above M (``lightpos.WEAK_MARGIN``)."""
 
 import glob
 import json
@@ -44,12 +47,14 @@ def parse(paths):
 
 margin = next((float(a.split("=")[1]) for a in sys.argv[1:] if a.startswith("--margin=")), 0.0)
 runs = [a for a in sys.argv[1:] if not a.startswith("--")]
+below: dict[str, list[tuple[float, float]]] = {}  # each material's (without, with) below its ideal, per run
 for run in runs:
     paths = sorted(glob.glob(f"{HERE}/{run}*.log"))
     rows = parse(paths)
-    for r in rows.values():  # the weak end kept only above the margin: else the fit without it
+    for k, r in rows.items():  # the weak end kept only above the margin: else the fit without it
         if "margin" in r and r["margin"] <= margin:
             r["mm"], r["final"] = r["wmm"], r["wfinal"]
+        below.setdefault(k, []).append((r["ideal"] - r["wfinal"], r["ideal"] - r["final"]))
     n = len(rows)
     a_with = sum(r["final"] for r in rows.values()) / n
     a_wo = sum(r["wfinal"] for r in rows.values()) / n
@@ -69,3 +74,9 @@ for run in runs:
                 f"{r['wmm']:.2f} -> {r['mm']:.2f} mm, margin {100 * r.get('margin', float('nan')):.2f}%, "
                 f"share {r.get('share')}"
             )
+if len(runs) > 1:
+    print(f"(b) below the ideal, averaged over the runs ({len(runs)}), without -> with:")
+    for k, v in below.items():
+        wo, w = (sum(x[i] for x in v) / len(v) for i in (0, 1))
+        if w != wo:
+            print(f"   {k:16s} {wo:.3f} -> {w:.3f} ({w - wo:+.3f}){' FAILS' if w - wo > 0.1 else ''} over {len(v)}")
