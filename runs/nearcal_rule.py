@@ -1,7 +1,7 @@
 """The third start's rules (docs/rti.md) read from bench/nearcal.py's logs in nearcal-weak/
 and nearcal-same/: per run, the mean final PSNR (a), the count within 0.5 dB of the ideal
 dome (c) and the fitted materials' mean light error (d) without → with the third start
-(the "without weak" line where its end was kept, else the first line), then each material
+(the "without weak" or "as default" line where another end was kept, else the first line), then each material
 whose end changed, with the share by which its third end's misfit was lower; over two
 runs or more, (b): each material's distance below its ideal averaged over the runs,
 without → with, those more than 0.1 dB farther marked.
@@ -39,7 +39,7 @@ def parse(paths):
                 if "weak" in ends:
                     rows[cur]["margin"] = (min(others) - ends["weak"]) / min(others)
                     rows[cur]["share"] = rec.get("shared_f0", {}).get("share")
-            elif line.startswith("    without weak") and cur:
+            elif line.startswith(("    without weak", "    as default")) and cur:
                 v = [float(x) for x in line.split()[2:]]
                 rows[cur]["wmm"], rows[cur]["wfinal"] = v[0], v[5]
     return rows
