@@ -96,9 +96,12 @@ prints each start's misfit at its end, ``ends``), ``--weak-margin=M`` keeps it o
 its misfit is lower by more than the share M (``lightpos.WEAK_MARGIN``); where its end was
 kept, a last line "without weak" gives the same photos' fit without it (the default), so
 that the two pair. ``--ends`` prints each start's end (its misfit, its lights' error
-before the turns, its shared F0 and share, its median roughness). ``--weak-own`` fits the
-third start with its own pixels sharing an F0 and its own scan (``lightpos.WEAK_SAME``
-False; by default those of the first start, so that the three ends fit the same unknowns).
+before the turns and its distance from the rig file's places, its shared F0 and share, its
+median roughness). ``--weak-own`` fits the third start with its own pixels sharing an F0
+and its own scan (``lightpos.WEAK_SAME`` False; by default those of the first start, so
+that the three ends fit the same unknowns). ``--ends-by=nearest`` keeps the end whose lights
+lie nearest the rig file's places (``lightpos.ENDS_BY``); where it kept another than the
+defaults would, a last line "as default" gives the same photos' fit with the defaults.
 
 ``--variants`` (with ``--own-f0 --steps=30 --pairs=1``) scores the joint fit four ways: its end
 with the bias left in, the pair's correction on positions and gains (``BIAS_PAIRS``), on
@@ -155,7 +158,8 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] 
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
-[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own] [--ends]
+[--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
+[--ends-by=A] [--ends]
 [--variants] [--validate-choice] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -508,17 +512,20 @@ def positions_and_unturned(cap: Capture, g1: torch.Tensor, cfg: ReconstructConfi
 SOLVED: list = []
 
 
-def print_ends(true: LightSet) -> None:
+def print_ends(true: LightSet, nominal: LightSet) -> None:
     """``--ends``: each start's end: its misfit, its lights' mean error (mm, before the
-    turns), the share of its pixels sharing one F0 and that F0, its pixels' median
-    roughness."""
+    turns) and root mean square distance from the rig file's places (``nominal``, as
+    ``lightpos.ENDS_BY`` weighs it), the share of its pixels sharing one F0 and that F0,
+    its pixels' median roughness."""
     parts = []
     for end in SOLVED:
         err = float((end.pos.float() - true.position).norm(dim=1).mean())
+        moved = float((end.pos.float() - nominal.position).norm(dim=1).square().mean().sqrt())
         share = 0.0 if end.shared is None else float(end.shared.double().mean())
         f0 = f"{float(end.th[3, end.shared][0]):.4f}" if share > 0 else "-"
         parts.append(
-            f"misfit {end.cost:.4f} {err:.2f} mm share {share:.2f} F0 {f0} roughness {float(end.th[6].median()):.3f}"
+            f"misfit {end.cost:.4f} {err:.2f} mm (moved rms {moved:.2f}) share {share:.2f} F0 {f0} "
+            f"roughness {float(end.th[6].median()):.3f}"
         )
     print(f"{'':16s} ends: " + " | ".join(parts), flush=True)
 
@@ -613,6 +620,8 @@ def main() -> None:
             lightpos.WEAK_MARGIN = float(a.split("=", 1)[1])
         if a == "--weak-own":  # the third start with its own sharing pixels and scan (lightpos.WEAK_SAME)
             lightpos.WEAK_SAME = False
+        if a.startswith("--ends-by="):  # which start's end is kept (lightpos.ENDS_BY)
+            lightpos.ENDS_BY = a.split("=", 1)[1]
         if a == "--hold-f0":  # the shared F0 held at its scan's value through the steps (lightpos.HOLD_F0)
             lightpos.HOLD_F0 = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
@@ -808,7 +817,7 @@ def main() -> None:
                     flush=True,
                 )
             if "--ends" in sys.argv:  # each start's end
-                print_ends(true)
+                print_ends(true, nominal)
             if "--record" in sys.argv:  # what the joint fit found besides the lights
                 keys = ("pixels_used", "misfit_per_value", "shared_f0", "level_turns")
                 shown = {k: fitted[k] for k in keys if k in fitted}
@@ -839,15 +848,20 @@ def main() -> None:
                     f"true ({mean_slope(maps)[0]:+.4f}, {mean_slope(maps)[1]:+.4f})",
                     flush=True,
                 )
-            if fitted["misfit_per_value"].get("kept") == "weak":  # the same photos without the third start
-                lightpos.WEAK_START, weak = 0.0, lightpos.WEAK_START
+            mpv = fitted["misfit_per_value"]
+            ends = mpv.get("ends", {})
+            default = "searched" if ends.get("searched", math.inf) < ends.get("start", math.inf) else "start"
+            if mpv.get("kept", default) != default:  # the same photos as the defaults fit them
+                chosen = (lightpos.WEAK_START, lightpos.ENDS_BY)
+                lightpos.WEAK_START, lightpos.ENDS_BY = 0.0, "misfit"
                 try:
                     with true_start(maps, size) if "--true-start" in sys.argv else contextlib.nullcontext():
                         other, g3, _, _ = estimate_positions(cap, g1, cfg, level=level)
                 finally:
-                    lightpos.WEAK_START = weak
+                    lightpos.WEAK_START, lightpos.ENDS_BY = chosen
                 fit = reconstruct_capture(with_gains(replace(cap, lights=other), g3), cfg)
-                report(f"{'':4s}without weak", other.position, true, maps, rig, (ideal, plain, gains_only, fit))
+                label = "without weak" if chosen[1] == "misfit" else "as default"
+                report(f"{'':4s}{label}", other.position, true, maps, rig, (ideal, plain, gains_only, fit))
             continue
         if "--full" in sys.argv:
             pos = full_positions(with_gains(cap, g1))

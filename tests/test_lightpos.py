@@ -561,6 +561,48 @@ def test_the_third_start_shares_the_f0_among_the_first_starts_pixels(drifted, mo
             assert torch.equal(third.shared, own) and 0.7 < float(own.double().mean()) < 0.8
 
 
+def test_the_end_kept_is_the_best_fitting_or_the_nearest_the_rig_file(drifted, monkeypatch):
+    """Of the three starts' ends, ``ENDS_BY`` "misfit" keeps the one of lowest misfit and
+    "nearest" the one whose lights' root mean square distance from the places the fit
+    started them at (the capture's: the rig file's), computed here from each end's
+    positions, is least; the record gives those distances,
+    and the positions returned are the kept end's. A smooth start (roughness 0.3, normals
+    vertical) beside the true maps gives ends far apart; the third end's lights are moved
+    20 mm farther after its fit, so that the two ways keep different ends."""
+    cap, maps, gains, _, _ = drifted
+    up = torch.zeros_like(maps.normal)
+    up[2] = 1
+    smooth = MapSet(**{**maps.present(), "roughness": torch.full_like(maps.roughness, 0.3), "normal": up})
+    solve, ends = lightpos._solve, []
+
+    def watched(*args, **kwargs):
+        end = solve(*args, **kwargs)
+        ends.append(replace(end, pos=end.pos + 20) if len(ends) == 2 else end)
+        return ends[-1]
+
+    monkeypatch.setattr(lightpos, "_solve", watched)
+    rig = cap.lights.position.double()  # where the fit starts them: the capture's (here the true places)
+    kept = {}
+    for by in ("misfit", "nearest"):
+        ends.clear()
+        monkeypatch.setattr(lightpos, "ENDS_BY", by)
+        pos, _, record = fit_positions(
+            cap, smooth, gains, iterations=4, bias_pairs=0, shared_f0=True, level=False, alternate=(maps, gains)
+        )
+        names = ("start", "searched", "weak")
+        rms = {k: float((e.pos - rig).norm(dim=1).square().mean().sqrt()) for k, e in zip(names, ends, strict=True)}
+        assert record["ends_moved_mm"] == pytest.approx(rms, abs=1e-3)
+        mpv = record["misfit_per_value"]
+        assert mpv["ends"] == pytest.approx({k: e.cost for k, e in zip(names, ends, strict=True)}, abs=1e-4)
+        best = min(rms, key=rms.get) if by == "nearest" else min(mpv["ends"], key=mpv["ends"].get)
+        assert mpv["kept"] == best and torch.equal(pos, ends[names.index(best)].pos.float())
+        kept[by] = best
+    assert kept["misfit"] == "weak" and kept["nearest"] != "weak"  # the true maps fit best, their lights moved off
+    monkeypatch.setattr(lightpos, "ENDS_BY", "closest")
+    with pytest.raises(ValueError, match="ENDS_BY"):
+        fit_positions(cap, maps, gains, iterations=0, bias_pairs=0, shared_f0=True, level=False)
+
+
 def test_the_weak_start_is_the_solvers_maps_with_weaker_priors(monkeypatch):
     """``WEAK_START`` = K fits a third start with every ``lm`` prior times K (and the turns
     are none here), and the record says which start's end was kept, the one of lowest
