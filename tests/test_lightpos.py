@@ -565,10 +565,10 @@ def test_the_end_kept_is_the_best_fitting_or_the_nearest_the_rig_file(drifted, m
     """Of the three starts' ends, ``ENDS_BY`` "misfit" keeps the one of lowest misfit and
     "nearest" the one whose lights' root mean square distance from the places the fit
     started them at (the capture's: the rig file's), computed here from each end's
-    positions, is least; the record gives those distances,
-    and the positions returned are the kept end's. A smooth start (roughness 0.3, normals
-    vertical) beside the true maps gives ends far apart; the third end's lights are moved
-    20 mm farther after its fit, so that the two ways keep different ends."""
+    positions, is least; the record gives those distances, and the positions returned are
+    the kept end's. A smooth start (roughness 0.3, normals vertical) beside the true maps
+    gives ends far apart; the third end's lights are moved 20 mm farther after its fit, so
+    that the two ways keep different ends."""
     cap, maps, gains, _, _ = drifted
     up = torch.zeros_like(maps.normal)
     up[2] = 1
