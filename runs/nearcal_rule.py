@@ -45,14 +45,14 @@ def parse(paths):
     return rows
 
 
-margin = next((float(a.split("=")[1]) for a in sys.argv[1:] if a.startswith("--margin=")), 0.0)
+margin = next((float(a.split("=")[1]) for a in sys.argv[1:] if a.startswith("--margin=")), None)
 runs = [a for a in sys.argv[1:] if not a.startswith("--")]
 below: dict[str, list[tuple[float, float]]] = {}  # each material's (without, with) below its ideal, per run
 for run in runs:
     paths = sorted(glob.glob(f"{HERE}/{run}*.log"))
     rows = parse(paths)
     for k, r in rows.items():  # the weak end kept only above the margin: else the fit without it
-        if "margin" in r and r["margin"] <= margin:
+        if margin is not None and "margin" in r and r["margin"] <= margin:
             r["mm"], r["final"] = r["wmm"], r["wfinal"]
         below.setdefault(k, []).append((r["ideal"] - r["wfinal"], r["ideal"] - r["final"]))
     n = len(rows)
