@@ -141,10 +141,11 @@ under the level convention only (where ``auto`` keeps the estimate without a gra
 nothing is turned); a second line, "before turns", gives the same fit's lights before the
 turns and its relighting with them, which is what no turns give, from one joint fit.
 ``--level-by=A[,B...]`` says what level means for the turns (``lightpos.LEVEL_BY``:
-``agreed``, the default, or ``median``); each after the first turns the same fit's
-lights from where the first's started, on a line of its own.
+``agreed``, the default, ``median`` or ``base``); each after the first turns the same
+fit's lights from where the first's started, on a line of its own.
 ``--levels`` prints, for each material, its true maps' slope by the median, the 10%
-trimmed mean and the two's agreement (``selfcal.agreed_slope``), and fits nothing.
+trimmed mean, the two's agreement (``selfcal.agreed_slope``) and the base plane
+(``selfcal.base_slope``), and fits nothing.
 
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
@@ -556,11 +557,13 @@ def true_start(maps: MapSet, size: int):
 
 def level_stats(maps: MapSet) -> dict[str, torch.Tensor]:
     """``--levels``: the maps' slope (x, y) by the median, the 10% trimmed mean and the two's
-    agreement (``selfcal.median_slope``, ``trimmed_slope``, ``agreed_slope``)."""
+    agreement and the base plane (``selfcal.median_slope``, ``trimmed_slope``,
+    ``agreed_slope``, ``base_slope``)."""
     return {
         "median": estimator.median_slope(maps),
         "trimmed": estimator.trimmed_slope(maps),
         "agreed": estimator.agreed_slope(maps),
+        "base": estimator.base_slope(maps),
     }
 
 

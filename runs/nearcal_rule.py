@@ -7,7 +7,9 @@ runs or more, (b): each material's distance below its ideal averaged over the ru
 without → with, those more than 0.1 dB farther marked.
 ``python runs/nearcal_rule.py nearcal-same/s256-d1 [nearcal-same/s128-d1 ...] [--margin=M]``
 (each run the logs whose names start so): with ``--margin`` the third end counts as kept
-only where that share is above M (``lightpos.WEAK_MARGIN``)."""
+only where that share is above M (``lightpos.WEAK_MARGIN``). With ``--by=NAME`` (runs of
+``--level-by=agreed,NAME``, nearcal-base/) "with" is each material's line "by NAME", the
+same fit turned level so, and "without" its first line."""
 
 import glob
 import json
@@ -42,10 +44,14 @@ def parse(paths):
             elif line.startswith(("    without weak", "    as default")) and cur:
                 v = [float(x) for x in line.split()[2:]]
                 rows[cur]["wmm"], rows[cur]["wfinal"] = v[0], v[5]
+            elif by and line.startswith(f"    by {by} ") and cur:  # the same fit turned level by BY: "with"
+                v = [float(x) for x in line.split()[2:]]
+                rows[cur]["mm"], rows[cur]["final"] = v[0], v[5]
     return rows
 
 
 margin = next((float(a.split("=")[1]) for a in sys.argv[1:] if a.startswith("--margin=")), None)
+by = next((a.split("=")[1] for a in sys.argv[1:] if a.startswith("--by=")), None)
 runs = [a for a in sys.argv[1:] if not a.startswith("--")]
 below: dict[str, list[tuple[float, float]]] = {}  # each material's (without, with) below its ideal, per run
 for run in runs:

@@ -101,6 +101,47 @@ def test_the_agreed_slope_is_the_median_or_trimmed_mean_nearer_none_where_they_a
         torch.testing.assert_close(selfcal.agreed_slope(maps_of(t)), expect, atol=1e-6, rtol=0)
 
 
+def test_the_integrated_height_keeps_a_tilt_and_a_field_that_is_not_periodic():
+    """A height tilted (0.3 per pixel along x, −0.2 along y, y up) and curved (0.01·x²,
+    neither periodic nor level) gives slopes whose averages over neighbouring pixels are
+    exactly its differences, so it comes back whole, less its mean (a periodic
+    integration would lose the tilt and bend the curve at the edges)."""
+    rows, cols = 21, 34
+    y, x = torch.meshgrid(
+        -torch.arange(rows, dtype=torch.float64), torch.arange(cols, dtype=torch.float64), indexing="ij"
+    )
+    height = 0.3 * x - 0.2 * y + 0.01 * x**2
+    slope = torch.stack([-(0.3 + 0.02 * x), torch.full_like(x, 0.2)])  # (n_x / n_z, n_y / n_z) = −∇h
+    torch.testing.assert_close(selfcal.integrated_height(slope), height - height.mean(), atol=1e-9, rtol=0)
+
+
+def test_the_base_slope_is_the_ground_s_tilt_under_a_relief_that_leans():
+    """Teeth along x on level ground, each 6 pixels of ground, a ramp rising 0.1 per pixel
+    over 12, then a drop over 2, cut by the field's edges; the whole tilted by (0.02,
+    −0.01). Most pixels are the ramps', so the median slope leans 0.1 more than the
+    ground and the trimmed mean (so the agreed slope) 0.06; the ground, the lowest of the
+    surface, is the base plane, found within 0.002."""
+    rows, cols = 40, 97
+    phase = torch.arange(cols, dtype=torch.float64) % 20
+    rise = torch.where(phase < 6, 0.0, torch.where(phase < 18, 0.1, -0.6))
+    tilt = torch.tensor([0.02, -0.01], dtype=torch.float64)
+    slope_x = -(rise[None, :].expand(rows, cols)) + tilt[0]  # n_x / n_z = −∂h/∂x
+    n = torch.stack(
+        [
+            slope_x,
+            torch.full((rows, cols), float(tilt[1]), dtype=torch.float64),
+            torch.ones(rows, cols, dtype=torch.float64),
+        ]
+    )
+    n = (n / n.norm(dim=0, keepdim=True)).float()
+    maps = MapSet(
+        torch.full((3, rows, cols), 0.5), torch.full((1, rows, cols), 0.04), torch.full((1, rows, cols), 0.5), n
+    )
+    assert float(selfcal.median_slope(maps)[0]) < float(tilt[0]) - 0.09
+    assert float(selfcal.agreed_slope(maps)[0]) < float(tilt[0]) - 0.05  # the trimmed mean's −0.0435
+    torch.testing.assert_close(selfcal.base_slope(maps), tilt.float(), atol=0.002, rtol=0)
+
+
 def test_a_level_sample_gives_a_brightness_gradient_back():
     """A matte paper photographed exactly under LEDs ±20% in brightness and brighter
     toward +x (exp(0.08 x), x each LED direction's component: ±7% across the dome). Under
