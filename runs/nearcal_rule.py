@@ -77,8 +77,8 @@ for run in runs:
         if r["wfinal"] != r["final"] or r["wmm"] != r["mm"]:
             print(
                 f"   {k:16s} below ideal {r['ideal'] - r['wfinal']:.2f} -> {r['ideal'] - r['final']:.2f}, "
-                f"{r['wmm']:.2f} -> {r['mm']:.2f} mm, margin {100 * r.get('margin', float('nan')):.2f}%, "
-                f"share {r.get('share')}"
+                f"{r['wmm']:.2f} -> {r['mm']:.2f} mm"
+                + ("" if by else f", margin {100 * r.get('margin', float('nan')):.2f}%, share {r.get('share')}")
             )
 if len(runs) > 1:
     print(f"(b) below the ideal, averaged over the runs ({len(runs)}), without -> with:")
