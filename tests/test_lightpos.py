@@ -277,8 +277,8 @@ def test_the_fitted_dome_is_turned_until_the_maps_lie_level(monkeypatch):
     the way the dome turned (by about 0.3°: each turn takes out 60-70% of what is left),
     and the turns bring the lights back within a tenth of that error; the record gives
     each turn and the distance moved from the rig file after them, level by the median
-    slope or by the one the median and trimmed mean agree on (the leather's relief has
-    both near none). Without, nothing is turned."""
+    slope, by the one the median and trimmed mean agree on, or by the base plane (the
+    leather's relief has all three near none). Without, nothing is turned."""
     from matscan.reconstruct import lightpos
     from matscan.reconstruct.lightpos import _level_turn
 
@@ -298,7 +298,7 @@ def test_the_fitted_dome_is_turned_until_the_maps_lie_level(monkeypatch):
 
     monkeypatch.setattr(lightpos, "fit_positions", turned_dome)
     cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
-    for turns, by in ((0, "median"), (6, "median"), (6, "agreed")):
+    for turns, by in ((0, "median"), (6, "median"), (6, "agreed"), (6, "base")):
         monkeypatch.setattr(lightpos, "LEVEL_TURNS", turns)
         monkeypatch.setattr(lightpos, "LEVEL_BY", by)
         lights, _, record, _ = estimate_positions(cap, gains, cfg, level=True)
