@@ -141,7 +141,7 @@ under the level convention only (where ``auto`` keeps the estimate without a gra
 nothing is turned); a second line, "before turns", gives the same fit's lights before the
 turns and its relighting with them, which is what no turns give, from one joint fit.
 ``--level-by=A[,B...]`` says what level means for the turns (``lightpos.LEVEL_BY``:
-``agreed``, the default, ``median`` or ``base``); each after the first turns the same
+``base``, the default, ``agreed`` or ``median``); each after the first turns the same
 fit's lights from where the first's started, on a line of its own.
 ``--levels`` prints, for each material, its true maps' slope by the median, the 10%
 trimmed mean, the two's agreement (``selfcal.agreed_slope``) and the base plane
