@@ -373,6 +373,32 @@ def test_black_and_saturated_photos_are_warned_about(tmp_path):
     assert not any("black" in w or "saturated" in w for w in check_capture(cap, ReconstructConfig()))
 
 
+def test_many_partly_saturated_photos_are_warned_about_in_one_line_that_names_each(tmp_path):
+    from dataclasses import replace
+
+    from matscan.reconstruct import check_capture
+
+    cap, _ = _capture(tmp_path, 16, list(range(8)))
+    assert cap.saturated.shape[2:] == (16, 16) and not cap.saturated.any()
+    rows = (2, 3, 4, 5, 2)  # of 16: 12.5%, 18.8%, 25%, 31.2%, 12.5% of each photo's pixels
+
+    def saturating(count):
+        saturated = cap.saturated.clone()
+        for i, r in enumerate(rows[:count]):
+            saturated[i, :, :r] = True
+        return check_capture(replace(cap, saturated=saturated), ReconstructConfig())
+
+    few = [w for w in saturating(3) if "saturated" in w]
+    assert [w.split(":")[0] for w in few] == list(cap.files[:3])  # a line a photo
+    assert "12.5% of pixels saturated" in few[0] and "18.8%" in few[1]
+    many = [w for w in saturating(5) if "saturated" in w]
+    assert len(many) == 1
+    assert many[0].startswith("5 of 8 photos have 12.5% to 31.2% of their pixels saturated")
+    shares = ("12.5%", "18.8%", "25.0%", "31.2%", "12.5%")
+    assert all(f"{f} {p}" in many[0] for f, p in zip(cap.files[:5], shares, strict=True))
+    assert cap.files[5] not in many[0]
+
+
 def test_loading_the_shipped_weights_imports_no_training_code():
     # nanoGPT's sample.py imports only the model: so does matscan.weights (a fresh interpreter)
     import subprocess

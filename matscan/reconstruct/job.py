@@ -196,6 +196,10 @@ ANYRIG_MIN_PHOTOS = 2
 DARK_PHOTO = 0.002
 
 
+#: More photos than this with some pixels saturated are warned about in one line.
+SATURATION_LINES = 3
+
+
 def _bright_fraction(capture: Capture, i: int) -> float:
     """The fraction of photo ``i``'s values at or above :data:`DARK_PHOTO`, a strip at a time."""
     count = 0
@@ -208,7 +212,7 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
     """Warnings about a capture, each saying what to do: saturated or black photos,
     missing lights, and what reading and calibrating it found (``capture.meta["warnings"]``)."""
     warnings = list(capture.meta.get("warnings", []))
-    dark = []
+    dark, partly = [], []
     for i, (file, sat) in enumerate(zip(capture.files, capture.saturated, strict=True)):
         frac = float(sat.float().mean())
         if frac > 0.5:
@@ -216,12 +220,23 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
                 f"{file}: {frac:.0%} of pixels saturated, so it says almost nothing; lower the exposure and retake it"
             )
         elif frac > cfg.saturation_warn:
-            warnings.append(
-                f"{file}: {frac:.1%} of pixels saturated; lower the exposure (they are left out of the fit)"
-            )
+            partly.append((file, frac))
         # the 99th percentile is below DARK_PHOTO exactly when under 1% of the values reach it
         if _bright_fraction(capture, i) < 0.01:
             dark.append(file)
+    if len(partly) > SATURATION_LINES:  # one line for many: an RTI dome's low ring saturates a glossy panel
+        least, most = min(f for _, f in partly), max(f for _, f in partly)
+        warnings.append(
+            f"{len(partly)} of {len(capture.files)} photos have {least:.1%} to {most:.1%} of their "
+            "pixels saturated ("
+            + ", ".join(f"{file} {frac:.1%}" for file, frac in partly)
+            + "); lower the exposure (they are left out of the fit)"
+        )
+    else:
+        warnings += [
+            f"{f}: {frac:.1%} of pixels saturated; lower the exposure (they are left out of the fit)"
+            for f, frac in partly
+        ]
     if dark and len(dark) == len(capture.files):
         warnings.append(
             "every photo is black (was the lens cap on, or the lights off?); the maps mean nothing — retake the capture"
