@@ -68,6 +68,12 @@ Where the intensities could not be read (too little diffuse reflection: the reco
 ``updated`` is false), reconstruct keeps the rig file's places, and so does the bench
 (marked *).
 
+``--at-bound=R`` asks what an estimator at that bound would relight at: R times, the
+lights' positions and log gains are drawn from the bound's joint distribution (the photos
+and the rig file's ±5 mm; each channel's overall gain held) and the maps fitted there as
+the final reconstruction fits them; it prints the ideal dome's novel-light PSNR, the
+draws' mean and worst, how many came within 0.5 dB of the ideal, their mean position
+error and the bound's RMS.
 ``--bound`` prints instead the Cramér–Rao bound of the positions given the true maps and
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
@@ -153,7 +159,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--held-out`` runs bench/selfcal.py's 13 held-out materials instead of the four, and
 ``--others`` the 8 of its 12 that are not among the four.
 
-Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--full|--matte] [--prior=K]
+Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--full|--matte] [--prior=K]
 [--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
 [--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--hold-f0] [--no-fallback] [--gains-only]
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
@@ -332,6 +338,19 @@ def bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: Camera
     """The Cramér–Rao bound of the LED positions given these photos: the RMS error (mm) of
     an unbiased estimator that fits positions, gains and every pixel's maps, and with the
     rig file's ±5 mm as a prior (uniform, σ 5/√3 per axis) as well."""
+    s = information(maps, true, gains, rig, camera)
+    k = 3 * len(gains)
+    photos_alone = torch.linalg.pinv(s, hermitian=True, rtol=1e-12)[:k, :k]
+    s[:k, :k] += torch.eye(k, dtype=torch.float64) / (5 / 3**0.5) ** 2
+    with_prior = torch.linalg.pinv(s, hermitian=True, rtol=1e-12)[:k, :k]
+    n = len(gains)
+    return float(photos_alone.trace() / n) ** 0.5, float(with_prior.trace() / n) ** 0.5
+
+
+def information(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: CameraModel) -> torch.Tensor:
+    """The Fisher information of the lights' 6N numbers (positions, then log gains, as
+    ``lightpos.normal_equations`` orders them) in these photos, every pixel's 9 numbers
+    eliminated (their Schur complement)."""
     f64 = torch.float64
     h, w = maps.size
     pts = surface_points(rig.field_mm, (h, w), dtype=f64).reshape(-1, 3)
@@ -352,13 +371,44 @@ def bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: Camera
     m = lightpos._render(th, lightpos._placed(lights, aims, lights.position, gains.double()), pts)
     wt = torch.where(m < 1, 1 / camera_variance(m, camera), torch.zeros_like(m))  # saturated: nothing
     a, gp, b, c, gl = lightpos.normal_equations(th, lights, aims, gains.double(), pts, wt, m)
-    _, s, _ = lightpos.reduced_system(a, gp, b, c, gl, 0.0)
-    k = 3 * len(gains)
-    photos_alone = torch.linalg.pinv(s, hermitian=True, rtol=1e-12)[:k, :k]
-    s[:k, :k] += torch.eye(k, dtype=f64) / (5 / 3**0.5) ** 2
-    with_prior = torch.linalg.pinv(s, hermitian=True, rtol=1e-12)[:k, :k]
+    return lightpos.reduced_system(a, gp, b, c, gl, 0.0)[1]
+
+
+def at_bound(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, draws: int, seed: int) -> None:
+    """What an estimator at the bound would relight at: lights drawn ``draws`` times from
+    the bound's joint distribution of positions and log gains (photos and the rig file's
+    ±5 mm, the gains' overall factor per channel held, as the joint fit holds it), the
+    maps fitted at each as the final reconstruction fits them. Prints the ideal dome's
+    PSNR, the draws' mean and worst, how many came within 0.5 dB of the ideal, the
+    draws' mean position error, and the bound's RMS."""
+    f64 = torch.float64
     n = len(gains)
-    return float(photos_alone.trace() / n) ** 0.5, float(with_prior.trace() / n) ** 0.5
+    s = information(maps, true, gains, rig, CameraModel(read_noise=0.002))
+    s[: 3 * n, : 3 * n] += torch.eye(3 * n, dtype=f64) / (5 / 3**0.5) ** 2
+    for ch in range(3):  # the overall factor of each channel's gains, which the maps take up, held at 0
+        u = torch.zeros(6 * n, dtype=f64)
+        u[3 * n + ch :: 3] = 1 / n
+        s += 1e3 * float(s.diagonal().max()) * torch.outer(u, u)
+    val, vec = torch.linalg.eigh(s)
+    root = vec * val.clamp_min(1e-12 * float(val.max())).rsqrt()  # δ = root · z has the covariance s⁻¹
+    z = torch.randn(6 * n, draws, generator=torch.Generator().manual_seed(seed), dtype=f64)
+    deltas = (root @ z).T
+    ideal = reconstruct_capture(with_gains(lightpos._lit_from(cap, true.position), gains), cfg)
+    best = novel_psnr(ideal.maps, ideal.intensity_scale, maps, rig.field_mm)
+    psnr, err = [], []
+    for d in deltas:
+        pos = true.position + d[: 3 * n].reshape(n, 3).float()
+        g = gains * d[3 * n :].reshape(n, 3).float().exp()
+        res = reconstruct_capture(with_gains(lightpos._lit_from(cap, pos), g), cfg)
+        psnr.append(novel_psnr(res.maps, res.intensity_scale, maps, rig.field_mm))
+        err.append(float((pos - true.position).norm(dim=1).mean()))
+    rms = float(torch.linalg.pinv(s, hermitian=True)[: 3 * n, : 3 * n].trace() / n) ** 0.5
+    within = sum(p >= best - 0.5 for p in psnr)
+    print(
+        f"{name:16s} {best:6.2f} {sum(psnr) / draws:7.2f} {min(psnr):7.2f} {within:4d} of {draws}"
+        f" {sum(err) / draws:7.2f} {rms:6.2f}",
+        flush=True,
+    )
 
 
 def variants(
@@ -664,6 +714,7 @@ def main() -> None:
         if a.startswith("--gradient="):  # the LEDs' log brightness rises by this per unit of x direction
             gradient = float(a.split("=", 1)[1])
     tie = next((float(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--versus-tie=")), None)
+    at = next((int(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--at-bound=")), None)
     for a in sys.argv[1:]:
         if a.startswith("--from-truth"):  # 0.0: the camera's; S: Gaussian on float photos; shot; steps
             v = a.split("=", 1)[1] if "=" in a else "0"
@@ -688,6 +739,8 @@ def main() -> None:
         print(f"{'material':16s} the true maps' slope (x, y) by each statistic")
     elif "--bound" in sys.argv:
         print(f"{'material':16s} {'photos alone':>12s} {'+ rig file':>12s}   (RMS position error of the bound, mm)")
+    elif at is not None:
+        print(f"{'material':16s}  ideal    mean   worst  within 0.5 dB   mm   bound (dB; lights drawn at the bound)")
     else:
         print(f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal nominal  gains +positions (dB)")
     for i, (name, maps) in enumerate(materials):
@@ -740,6 +793,9 @@ def main() -> None:
             print(f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}" + f0, flush=True)
             continue
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
+        if at is not None:  # what an estimator at the bound would relight at
+            at_bound(name, cap, cfg, maps, true, gains, rig, at, seed=300 + i + draw)
+            continue
         if "--slopes" in sys.argv:  # each convention's estimate, and the level one's gradient
             slopes(name, cap, cfg, gains, tilt)
             continue
