@@ -74,6 +74,9 @@ and the rig file's ±5 mm; each channel's overall gain held) and the maps fitted
 the final reconstruction fits them; it prints the ideal dome's novel-light PSNR, the
 draws' mean and worst, how many came within 0.5 dB of the ideal, their mean position
 error and the bound's RMS.
+``--held-gains`` (with ``--joint``) adds under each material whose intensities are unread
+a line "held gains": the gains the joint fit finds with every light held at the rig file's
+place, and the relighting with them there.
 ``--bound`` prints instead the Cramér–Rao bound of the positions given the true maps and
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
@@ -167,7 +170,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends]
-[--variants] [--validate-choice] [--held-out|--others] [--only=NAMES]
+[--variants] [--validate-choice] [--held-gains] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
 
@@ -581,6 +584,20 @@ def print_ends(true: LightSet, nominal: LightSet) -> None:
     print(f"{'':16s} ends: " + " | ".join(parts), flush=True)
 
 
+def held_gains(cap: Capture, g1: torch.Tensor, cfg, level: bool) -> torch.Tensor:
+    """``--held-gains``: the gains the joint fit finds with every light held at the rig
+    file's place (gains and maps fitted, no position), from the ``lm`` solver's maps at
+    ``g1``, gauged as ``estimate_positions`` gauges its own."""
+    free = lightpos._free_directions
+    lightpos._free_directions = lambda lights, near, gradient=False: free(lights, torch.zeros_like(near), gradient)
+    try:
+        start = reconstruct_capture(with_gains(cap, g1), cfg)
+        _, fitted, _ = fit_positions(cap, start.maps, g1 * start.intensity_scale, level=level)
+    finally:
+        lightpos._free_directions = free
+    return estimator.gauged(fitted, cap.lights, level)
+
+
 @contextlib.contextmanager
 def true_start(maps: MapSet, size: int):
     """``--true-start``: within it, ``estimate_positions`` starts the joint fit from the true
@@ -839,6 +856,19 @@ def main() -> None:
         gains_only = reconstruct_capture(with_gains(cap, g1), cfg)
         if "--joint" in sys.argv and not record["updated"]:  # as reconstruct does: the rig file's places
             report(f"{name} *", nominal.position, true, maps, rig, (ideal, plain, gains_only, gains_only))
+            if "--held-gains" in sys.argv:  # the unread intensities from the joint fit, the lights held
+                g = held_gains(cap, g1, cfg, record["convention"] == "level sample")
+                fit = reconstruct_capture(with_gains(cap, g), cfg)
+                off = (g / gains).log()
+                off = float((off - off.mean(0)).square().mean().sqrt()) * 100
+                report(f"{'':4s}held gains", nominal.position, true, maps, rig, (ideal, plain, fit, fit))
+                ones = torch.ones_like(g)
+                rmse = [estimator._fit_error(cap, v, replace(cfg, validate=0)) for v in (ones, g)]
+                print(
+                    f"{'':16s} the gains' RMS error {off:.2f}% (overall factor removed); re-rendering RMSE "
+                    f"{rmse[0]:.5f} at the rig file's intensities, {rmse[1]:.5f} with these",
+                    flush=True,
+                )
             continue
         if "--variants" in sys.argv:  # the pair's correction applied in parts (with --steps=30 --pairs=1)
             variants(name, cap, g1, cfg, maps, true, gains, rig, record["convention"] == "level sample")
