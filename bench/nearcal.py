@@ -66,7 +66,7 @@ fitted gains (which of the two the relighting follows), and the mean slope of th
 maps' normals (how far the fit tilted the sample as a whole).
 Where the intensities could not be read (too little diffuse reflection: the record's
 ``updated`` is false), reconstruct keeps the rig file's places, and so does the bench
-(marked *).
+(marked *; reconstruct now fits the gains there with the lights held: ``--held-gains``).
 
 ``--at-bound=R`` asks what an estimator at that bound would relight at: R times, the
 lights' positions and log gains are drawn from the bound's joint distribution (the photos
@@ -76,7 +76,9 @@ draws' mean and worst, how many came within 0.5 dB of the ideal, their mean posi
 error and the bound's RMS.
 ``--held-gains`` (with ``--joint``) adds under each material whose intensities are unread
 a line "held gains": the gains the joint fit finds with every light held at the rig file's
-place, and the relighting with them there.
+place (``lightpos.estimate_held_gains``, what ``reconstruct --self-calibrate-positions``
+now does there), and the relighting with them there; the line marked * above it keeps the
+rig file's intensities, as reconstruct did before.
 ``--bound`` prints instead the Cramér–Rao bound of the positions given the true maps and
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
@@ -584,20 +586,6 @@ def print_ends(true: LightSet, nominal: LightSet) -> None:
     print(f"{'':16s} ends: " + " | ".join(parts), flush=True)
 
 
-def held_gains(cap: Capture, g1: torch.Tensor, cfg, level: bool) -> torch.Tensor:
-    """``--held-gains``: the gains the joint fit finds with every light held at the rig
-    file's place (gains and maps fitted, no position), from the ``lm`` solver's maps at
-    ``g1``, gauged as ``estimate_positions`` gauges its own."""
-    free = lightpos._free_directions
-    lightpos._free_directions = lambda lights, near, gradient=False: free(lights, torch.zeros_like(near), gradient)
-    try:
-        start = reconstruct_capture(with_gains(cap, g1), cfg)
-        _, fitted, _ = fit_positions(cap, start.maps, g1 * start.intensity_scale, level=level)
-    finally:
-        lightpos._free_directions = free
-    return estimator.gauged(fitted, cap.lights, level)
-
-
 @contextlib.contextmanager
 def true_start(maps: MapSet, size: int):
     """``--true-start``: within it, ``estimate_positions`` starts the joint fit from the true
@@ -854,10 +842,10 @@ def main() -> None:
                 flush=True,
             )
         gains_only = reconstruct_capture(with_gains(cap, g1), cfg)
-        if "--joint" in sys.argv and not record["updated"]:  # as reconstruct does: the rig file's places
+        if "--joint" in sys.argv and not record["updated"]:  # the rig file's places, as reconstruct keeps them
             report(f"{name} *", nominal.position, true, maps, rig, (ideal, plain, gains_only, gains_only))
             if "--held-gains" in sys.argv:  # the unread intensities from the joint fit, the lights held
-                g = held_gains(cap, g1, cfg, record["convention"] == "level sample")
+                g, _ = lightpos.estimate_held_gains(cap, g1, cfg, level=record["convention"] == "level sample")
                 fit = reconstruct_capture(with_gains(cap, g), cfg)
                 off = (g / gains).log()
                 off = float((off - off.mean(0)).square().mean().sqrt()) * 100

@@ -729,6 +729,38 @@ def test_positions_are_kept_where_the_intensities_could_not_be_read():
     assert res.self_calibration["updated"] is False and "positions" not in res.self_calibration
     assert res.lights is None
     assert sum("rig file's positions are kept" in w for w in res.warnings) == 1
+    # the intensities fitted with the lights held instead (estimate_held_gains), recorded
+    held = res.self_calibration["held_gains"]["light_gains"]
+    torch.testing.assert_close(torch.tensor([held[f] for f in FILES]), res.light_gains, atol=1e-5, rtol=0)
+    assert sum("every light held at its place" in w for w in res.warnings) == 1
+
+
+def test_the_held_gains_read_the_intensities_with_every_light_where_the_capture_puts_it():
+    """Photos under the rig file's places with LEDs ±20% in brightness: with the places
+    held the joint fit reads each LED's gain (its overall factor and tilt across the dome
+    aside) within 1%, where the rig file's intensities are 11% off, and moves no light."""
+    from matscan.reconstruct.lightpos import estimate_held_gains
+
+    maps = generate("paper", 32, 1)
+    true = _gains()
+    photos = _photos(maps, torch.zeros(24, 3), true, noise=0.002)
+    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
+    cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES)
+    cfg = ReconstructConfig(model="none", refine="on")
+
+    def off(g):  # RMS of the log error, each channel's overall factor removed
+        e = (g / true).log()
+        return float((e - e.mean(0)).square().mean().sqrt())
+
+    ones = torch.ones(24, 3)
+    held, record = estimate_held_gains(cap, ones, cfg, level=False)
+    assert off(ones) > 0.1 and off(held) < 0.01, (off(ones), off(held))
+    assert record["reduced_by"] == 1 and set(record["light_gains"]) == set(FILES)
+    start = reconstruct_capture(cap, cfg)
+    pos, _, _ = fit_positions(cap, start.maps, ones * start.intensity_scale, iterations=4, hold_places=True)
+    assert torch.equal(pos, cap.lights.position)
+    free, _, _ = fit_positions(cap, start.maps, ones * start.intensity_scale, iterations=4)
+    assert not torch.equal(free, cap.lights.position)  # not held: the same fit moves them
 
 
 def test_a_flash_capture_keeps_the_geometry_it_gives(tmp_path):

@@ -388,15 +388,20 @@ def reconstruct_capture(
 
         t0 = time.perf_counter()
         gains, record = estimate_gains(capture, cfg)
-        lights, notes = None, []
+        lights, notes, held = None, [], False
         if cfg.self_calibrate_positions and not record["updated"]:
-            why = (
-                "the intensities could not be estimated either"
-                if "rejected" in record
-                else "the photos that show the lights' intensities are too few to place them either "
-                "(fitted, a simulated metal and black knit lost 1.7-2.0 dB)"
+            from matscan.reconstruct.lightpos import estimate_held_gains
+
+            gains, record["held_gains"] = estimate_held_gains(
+                capture, gains, cfg, progress, record["convention"] == "level sample"
             )
-            notes.append(f"--self-calibrate-positions: {why}; the rig file's positions are kept")
+            held = True
+            notes.append(
+                "--self-calibrate-positions: the diffuse reflection does not show the lights' intensities (a metal or "
+                "a black fabric shows too little), so they were fitted with the maps, every light held at its place; "
+                "the rig file's positions are kept (placed from such photos, a simulated knit, worn print and brushed "
+                "metal's lights went 20-87 mm astray: docs/rti.md)"
+            )
         elif cfg.self_calibrate_positions:
             from matscan.reconstruct.lightpos import estimate_positions
 
@@ -445,23 +450,24 @@ def reconstruct_capture(
                 "be the sample's (a handheld light's); estimated again for a dome without a brightness gradient"
                 + (f", they are kept (RMSE {after:.4g})" if record["updated"] else "")
             )
-        if "rejected" in record and "fallback" in record:
-            result.warnings.append(
-                f"--self-calibrate: estimated without a gradient, the intensities re-render the photos no better "
-                f"either (RMSE {after:.4g} against {before:.4g}); the capture's own are kept"
-            )
-        elif "rejected" in record:
-            result.warnings.append(
-                f"--self-calibrate: the intensities estimated from the photos re-render them no better than the "
-                f"capture's own (RMSE {after:.4g} against {before:.4g}), which are kept: they were right already, or "
-                "too little of the sample reflects diffusely to read them (a black fabric)"
-            )
-        elif not record["updated"]:
-            result.warnings.append(
-                f"--self-calibrate: only {record['photos_read']} of {len(capture.files)} photos show enough "
-                "diffuse reflection to read their light's intensity (a metal or a black fabric shows too little); "
-                "the rig file's intensities are kept"
-            )
+        if not held:  # where the intensities were fitted with the lights held, notes says so
+            if "rejected" in record and "fallback" in record:
+                result.warnings.append(
+                    f"--self-calibrate: estimated without a gradient, the intensities re-render the photos no better "
+                    f"either (RMSE {after:.4g} against {before:.4g}); the capture's own are kept"
+                )
+            elif "rejected" in record:
+                result.warnings.append(
+                    f"--self-calibrate: the intensities estimated from the photos re-render them no better than the "
+                    f"capture's own (RMSE {after:.4g} against {before:.4g}), which are kept: they were right already, "
+                    "or too little of the sample reflects diffusely to read them (a black fabric)"
+                )
+            elif not record["updated"]:
+                result.warnings.append(
+                    f"--self-calibrate: only {record['photos_read']} of {len(capture.files)} photos show enough "
+                    "diffuse reflection to read their light's intensity (a metal or a black fabric shows too little); "
+                    "the rig file's intensities are kept"
+                )
         return result
     n = len(capture.files)
     misfit = networks_misfit(nets, capture) if nets is not None else None
