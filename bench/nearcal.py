@@ -79,6 +79,18 @@ a line "held gains": the gains the joint fit finds with every light held at the 
 place (``lightpos.estimate_held_gains``, what ``reconstruct --self-calibrate-positions``
 now does there), and the relighting with them there; the line marked * above it keeps the
 rig file's intensities, as reconstruct did before.
+``--profile`` (with ``--joint``, under each material whose intensities are unread) asks
+whether placing those lights fails by its start or by what it fits: it runs the joint fit
+(as ``estimate_positions`` runs it) from the rig file's places with the held gains, and
+from the true places with the true gains and with the held gains, and prints each end's
+position error, its relighting (the maps fitted there with the fit's gains) and its
+profile misfit: the misfit per value left when the gains and every pixel's maps are
+fitted again (30 steps) with the lights held there, on the pixels and under the noise
+model of the fit from the true places and gains, so that all are in one unit; then the
+same misfit at the true places and at the rig file's. An end whose profile misfit is above
+another's stopped in a worse valley (a start's failing); the truth's above an end's means
+the misfit itself prefers that end (the estimator's bias), and the differences, times the
+values counted, are in units of the noise's variance (Δχ²).
 ``--bound`` prints instead the Cramér–Rao bound of the positions given the true maps and
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
@@ -172,7 +184,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends]
-[--variants] [--validate-choice] [--held-gains] [--held-out|--others] [--only=NAMES]
+[--variants] [--validate-choice] [--held-gains] [--profile] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
 
@@ -622,6 +634,47 @@ def level_stats(maps: MapSet) -> dict[str, torch.Tensor]:
     }
 
 
+def profiles(cap: Capture, cfg, maps: MapSet, true: LightSet, gains, held, rig, level: bool) -> None:
+    """``--profile``: the joint fit's ends from the rig file's places with the ``held``
+    gains and from the true places with the true and the held gains, each end's error,
+    relighting and profile misfit (gains and maps fitted again, the lights held), and the
+    profile misfit at the true places and the rig file's, all on the pixels and noise
+    model of the fit from the truth with the true gains."""
+    solve, calls = lightpos._solve, []
+
+    def watched(*args, **kwargs):
+        calls.append((args, solve(*args, **kwargs)))
+        return calls[-1][1]
+
+    at_truth = lightpos._lit_from(cap, true.position)
+    starts = {"truth, true gains": (at_truth, gains), "truth, held gains": (at_truth, held)}
+    starts["rig file, held"] = (cap, held)
+    ends, reference = {}, None
+    lightpos._solve = watched
+    try:
+        for label, (c, g) in starts.items():
+            calls.clear()
+            lights, g2, _, _ = estimate_positions(c, g, cfg, level=level)
+            fit = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
+            best = min((s for _, s in calls), key=lambda s: s.cost)  # the end kept, before any turns
+            ends[label] = (best.pos, best.lg, novel_psnr(fit.maps, fit.intensity_scale, maps, rig.field_mm))
+            reference = reference or calls[0]
+    finally:
+        lightpos._solve = solve
+    (photos, th, lg), first = reference[0][:3], reference[1]
+    photos = replace(photos, near=torch.zeros_like(photos.near))  # every light held where it is put
+    ends["the truth"] = (true.position.double(), lg, None)
+    ends["the rig file"] = (cap.lights.position.double(), lg, None)
+    values = float(photos.valid[..., first.used].sum())
+    for label, (pos, lg_end, psnr) in ends.items():
+        placed = replace(photos, lights=replace(photos.lights, position=pos))
+        misfit = solve(placed, th, lg_end, 30, fixed=(first.noise, first.used), shared_f0=lightpos.SHARED_F0).cost
+        err = float((pos - true.position.double()).norm(dim=1).mean())
+        relit = "" if psnr is None else f", relit {psnr:.2f} dB"
+        line = f"profile at {label:18s} {misfit:.6f} per value of {values:.0f}, {err:.2f} mm off{relit}"
+        print(f"{'':16s} {line}", flush=True)
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -857,6 +910,10 @@ def main() -> None:
                     f"{rmse[0]:.5f} at the rig file's intensities, {rmse[1]:.5f} with these",
                     flush=True,
                 )
+            if "--profile" in sys.argv:  # whether placing these lights fails by its start or its misfit
+                level = record["convention"] == "level sample"
+                g = g if "--held-gains" in sys.argv else lightpos.estimate_held_gains(cap, g1, cfg, level=level)[0]
+                profiles(cap, cfg, maps, true, gains, g, rig, level)
             continue
         if "--variants" in sys.argv:  # the pair's correction applied in parts (with --steps=30 --pairs=1)
             variants(name, cap, g1, cfg, maps, true, gains, rig, record["convention"] == "level sample")
