@@ -83,14 +83,16 @@ rig file's intensities, as reconstruct did before.
 whether placing those lights fails by its start or by what it fits: it runs the joint fit
 (as ``estimate_positions`` runs it) from the rig file's places with the held gains, and
 from the true places with the true gains and with the held gains, and prints each end's
-position error, its relighting (the maps fitted there with the fit's gains) and its
-profile misfit: the misfit per value left when the gains and every pixel's maps are
-fitted again (30 steps) with the lights held there, on the pixels and under the noise
-model of the fit from the true places and gains, so that all are in one unit; then the
-same misfit at the true places and at the rig file's. An end whose profile misfit is above
-another's stopped in a worse valley (a start's failing); the truth's above an end's means
-the misfit itself prefers that end (the estimator's bias), and the differences, times the
-values counted, are in units of the noise's variance (Δχ²).
+position error, its relighting (the maps fitted there with the fit's gains; the places
+after any level turns, the error and misfit before them) and its profile misfit: the
+misfit per value left when the gains and every pixel's maps are fitted again (30 steps
+from the first fit's start maps) with the lights held there, on the pixels and under the
+noise model of the fit from the true places and gains, so that all are in one unit; then
+the same misfit at the true places and at the rig file's. An end whose profile misfit is
+above another's stopped in a worse valley or short (a start's failing); the truth's above
+an end's means the misfit itself prefers that end, as far as the refit finds (the
+estimator's bias); the differences, times the values counted, are in units of the
+noise's variance (Δχ²).
 ``--bound`` prints instead the Cramér–Rao bound of the positions given the true maps and
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.

@@ -1055,10 +1055,12 @@ def estimate_held_gains(
     place, for a capture whose intensities the diffuse reflection could not give
     (``gains``: :func:`matscan.reconstruct.selfcal.estimate_gains`'s, unread), and a
     record. Placed from the photos too, the lights of such materials (a black knit, a worn
-    print, a brushed metal) went 20-87 mm astray; held, their gains came 3-7% off (RMS)
-    against ±20% at the rig file's, and over six draws of the three they relit 1.31 →
-    0.63 dB below the ideal dome on average, 3 → 9 of 18 within 0.5 dB, worse on 3
-    (docs/rti.md, "The unread intensities").
+    print, a brushed metal) went 20-87 mm astray, and 2.4-52 mm started at the truth: the
+    knit's misfit hardly tells those places apart, the metal's prefers them, and the worn
+    print's steps leave its truth (docs/rti.md, "their misfit, profiled"); held, their
+    gains came 3-7% off (RMS) against ±20% at the rig file's, and over six draws of the
+    three they relit 1.31 → 0.63 dB below the ideal dome on average, 3 → 9 of 18 within
+    0.5 dB, worse on 3 (docs/rti.md, "The unread intensities").
     Pixels as :func:`estimate_positions` takes them (``POSITION_SIDE``); ``level`` as
     there."""
     from matscan.reconstruct.job import SELF_CALIBRATION_OFF, reconstruct_capture
