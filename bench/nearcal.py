@@ -94,8 +94,8 @@ an end's means the misfit itself prefers that end, as far as the refit finds (th
 estimator's bias); the differences, times the values counted, are in units of the
 noise's variance (Δχ²). The refit starts from one set of maps and may stop above what a
 fit's own path found at its end: a line "from ..." before the profiles gives each fit's
-ends' own misfits (``--record``'s ``misfit_per_value``; each start's in the units of its
-own noise model, the first fit's first start's in the profiles').
+ends' own misfits (``--record``'s ``misfit_per_value``, in the units of that fit's noise
+model, which its starts share; the first fit's is the profiles').
 ``--bound`` prints instead the Cramér–Rao bound of the positions given the true maps and
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
@@ -663,8 +663,8 @@ def profiles(cap: Capture, cfg, maps: MapSet, true: LightSet, gains, held, rig, 
             fit = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
             best = min((s for _, s in calls), key=lambda s: s.cost)  # the end kept, before any turns
             ends[label] = (best.pos, best.lg, novel_psnr(fit.maps, fit.intensity_scale, maps, rig.field_mm))
-            # each of its starts' ends' own misfit, with the pixels' numbers its path found, each in its own
-            # noise model's units (the first start's of the first fit is the profiles' own)
+            # each of its starts' ends' own misfit, with the pixels' numbers its path found, in the units
+            # of this fit's noise model (its starts share it; the first fit's is the profiles' own)
             print(f"{'':16s} from {label}: {json.dumps(fitted['misfit_per_value'])}", flush=True)
             reference = reference or calls[0]
     finally:
