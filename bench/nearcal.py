@@ -743,6 +743,12 @@ def main() -> None:
             lightpos.ENDS_BY = a.split("=", 1)[1]
         if a == "--hold-f0":  # the shared F0 held at its scan's value through the steps (lightpos.HOLD_F0)
             lightpos.HOLD_F0 = True
+        if a.startswith("--place-prior="):  # the rig file's places as a prior, S mm per axis (PLACE_SPREAD_MM)
+            lightpos.PLACE_SPREAD_MM = float(a.split("=", 1)[1])
+        if a == "--censored":  # values at the files' floor censored in the joint fit (lightpos.CENSORED)
+            lightpos.CENSORED = True
+        if a == "--adjusted":  # the lights' steps follow the adjusted profile likelihood (lightpos.ADJUSTED)
+            lightpos.ADJUSTED = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
             estimator.LEVEL = True
         if a == "--no-level":  # the former convention: the LEDs without a gradient
