@@ -159,6 +159,8 @@ holds the slopes' sum where its start put it, and the solver's maps, fitted at t
 file's places, come out tilted. ``--grey-f0`` makes the shared F0 one number for the
 three channels (``lightpos.GREY_F0``); ``--hold-f0`` holds it at its scan's value through
 the steps (``lightpos.HOLD_F0``; ``--record`` prints both, ``scanned`` and ``value``).
+``--place-prior=S`` gives the joint fit the rig file's places as a Gaussian prior of S mm
+a axis (``lightpos.PLACE_SPREAD_MM``; the dome's ±5 mm uniform is 2.9 mm).
 ``--validate-choice`` prints under each fitted material the re-rendering error of 6 photos
 left out (``reconstruct --validate 6``) with the fitted lights and with the rig file's
 places and the intensities alone: whether the photos could tell which relights better (on
@@ -188,7 +190,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
-[--ends-by=A] [--ends]
+[--ends-by=A] [--ends] [--place-prior=S]
 [--variants] [--validate-choice] [--held-gains] [--profile] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -745,10 +747,6 @@ def main() -> None:
             lightpos.HOLD_F0 = True
         if a.startswith("--place-prior="):  # the rig file's places as a prior, S mm per axis (PLACE_SPREAD_MM)
             lightpos.PLACE_SPREAD_MM = float(a.split("=", 1)[1])
-        if a == "--censored":  # values at the files' floor censored in the joint fit (lightpos.CENSORED)
-            lightpos.CENSORED = True
-        if a == "--adjusted":  # the lights' steps follow the adjusted profile likelihood (lightpos.ADJUSTED)
-            lightpos.ADJUSTED = True
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
             estimator.LEVEL = True
         if a == "--no-level":  # the former convention: the LEDs without a gradient

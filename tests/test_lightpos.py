@@ -389,6 +389,25 @@ def test_a_shared_f0_leaves_less_bias(drifted):
     assert float((without_tilt(fitted, RIG.light_set()) / gains - 1).abs().max()) < 0.03
 
 
+@pytest.mark.parametrize("spread", [1e-3, 0.5])
+def test_the_rig_files_places_as_a_prior_pull_the_lights_back(drifted, monkeypatch, spread):
+    """With the places the fit starts from as a Gaussian prior (``PLACE_SPREAD_MM``), the
+    same fit as ``drifted``'s (started at the truth, 30 steps) moves less: every light's
+    move shrinks toward none as the prior tightens (the prior's curvature, 1/spread² a
+    mm², is added to the positions' block), and at 0.001 mm it does not move at all."""
+    cap, maps, gains, truth, left = drifted
+    monkeypatch.setattr(lightpos, "PLACE_SPREAD_MM", spread)
+    pos, _, _ = fit_positions(
+        cap, maps, gains, iterations=30, bias_pairs=0, second_order=False, shared_f0=False, level=False
+    )
+    moved = float((pos - truth.position).norm(dim=1).mean())
+    drift = float((left - truth.position).norm(dim=1).mean())
+    if spread < 0.01:
+        assert moved < 0.01
+    else:
+        assert 0.01 < moved < 0.8 * drift
+
+
 def test_the_shared_f0_starts_where_the_photos_put_it(drifted):
     """Started with every pixel's F0 at 0.012 (a start that read the grass's highlights too
     faint; its true F0 is 0.04), the shared F0 starts, before any step, at the value of the

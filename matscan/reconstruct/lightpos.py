@@ -262,14 +262,6 @@ WEAK_SAME = True
 #: and a gravel 0.23 dB (its lights nearer the truth) lower, the woven twill 0.61 higher.
 ENDS_BY = "misfit"
 _ENDS_BY = ("misfit", "nearest")
-#: The lights' steps follow the photos' misfit plus Σ log det of each pixel's information
-#: (the adjusted profile likelihood, Cox & Reid 1987; module doc), the pixels' steps the
-#: misfit alone.
-ADJUSTED = False
-#: Values that read the floor of the file's codes (0: the noise took them below it, and the
-#: camera clipped them) are censored, not measured: their misfit is −2 log P(value ≤
-#: floor) (a Tobit model, Tobin 1958), not their squared distance from the floor.
-CENSORED = False
 #: How far (mm, one standard deviation per axis) the rig file's places are taken to be
 #: from the LEDs': a Gaussian prior on the near lights' positions about the places the fit
 #: starts from (0: none). The rig file is a measurement of its own; ±5 mm uniform is
@@ -279,11 +271,6 @@ CENSORED = False
 #: −0.11), and from the rig file the knit's lights came to 4.6 mm, still relit below its
 #: places held (docs/rti.md, "what it is not").
 PLACE_SPREAD_MM = 0.0
-#: The adjustment's ρ and F0 below this are taken at it (their logarithm's column).
-_LOG_FLOOR = 1e-3
-#: The adjustment's prior spread: log ρ and log F0 within about an e-fold, the rest as
-#: ``_SPREAD``.
-_ADJUSTED_SPREAD = torch.tensor([1.0] * 6 + [0.28, 1.0, 1.0], dtype=F64)
 _PRIORS = ("prior_diffuse", "prior_specular", "prior_roughness", "prior_normal")
 #: With ``SECOND_ORDER``, each pixel's numbers spread at most as if uniform over their
 #: physical range (ρ and F0 in [0, 1], roughness in [0.02, 1], the slopes within ±√3,
@@ -484,11 +471,10 @@ def _noise_weights(y: Tensor, m: Tensor, valid: Tensor) -> tuple[Tensor, tuple[f
     return valid / (a * y.clamp_min(0) + b), (a, b)
 
 
-def _free_directions(lights: LightSet, near: Tensor, gradient: bool = False, overall: bool = True) -> Tensor:
+def _free_directions(lights: LightSet, near: Tensor, gradient: bool = False) -> Tensor:
     """An orthonormal basis (6N, D) of the steps allowed over (positions, log gains): no
-    position step for directional lights, unless ``gradient`` no gradient of the log
-    gains across the dome, and unless ``overall`` no step of their overall RGB factor
-    (the albedo takes it)."""
+    position step for directional lights, and unless ``gradient``, no gradient of the log
+    gains across the dome."""
     n = len(near)
     d = lights.position / lights.position.norm(dim=1, keepdim=True)
     fixed = []
@@ -503,10 +489,6 @@ def _free_directions(lights: LightSet, near: Tensor, gradient: bool = False, ove
             g = torch.zeros(n, 3, dtype=F64)
             g[:, c] = d[:, j]
             fixed.append(torch.cat([torch.zeros(3 * n, dtype=F64), g.reshape(-1)]))
-    for c in range(0 if overall else 3):
-        g = torch.zeros(n, 3, dtype=F64)
-        g[:, c] = 1
-        fixed.append(torch.cat([torch.zeros(3 * n, dtype=F64), g.reshape(-1)]))
     if not fixed:
         return torch.eye(6 * n, dtype=F64)
     q = torch.linalg.qr(torch.stack(fixed, 1))[0]
@@ -529,7 +511,6 @@ class _Photos:
     y: Tensor
     valid: Tensor
     level: bool = False
-    floor: float = -math.inf  # values at or below it read the floor of the file's codes (``CENSORED``)
 
 
 @dataclass(frozen=True)
@@ -589,47 +570,6 @@ def _with_level(b: Tensor, c: Tensor, gl: Tensor, moved: Tensor):
     return torch.cat([b, e], 2), c, torch.cat([gl, -moved])
 
 
-def _adjustment(
-    th: Tensor,
-    pos: Tensor,
-    lg: Tensor,
-    lights: LightSet,
-    aims: Tensor,
-    pts: Tensor,
-    wt: Tensor,
-    own: Tensor,
-    grad: bool,
-):
-    """Σ_p log det(A_p + diag(``_SPREAD``⁻²)) over the pixels, A_p each pixel's 9 × 9 Fisher
-    information (weights ``wt``; the F0 columns left out where ``own`` (P,) is False: those
-    pixels share one F0), and with ``grad`` its gradients by the positions (N, 3), the
-    log gains (N, 3) and the pixels' numbers (9, P) (``ADJUSTED``, module doc)."""
-    with torch.enable_grad():
-        pos_, lg_, th_ = (t.detach().clone().requires_grad_(grad) for t in (pos, lg, th))
-        geo = lm.geometry(_placed(lights, aims, pos_, lg_.exp()), pts)
-        a, s1, _ = lm.bases(th_[6:9], geo)
-        eye = torch.eye(3, dtype=F64)[None, :, :, None]  # (1, C, C', 1): channel c's column
-        cols = []  # ρ and F0 by their logarithms: no overall brightness of the lights changes the sum
-        for c in range(3):
-            cols.append(a * eye[:, :, c] * th_[c].clamp_min(_LOG_FLOOR))
-        for c in range(3):
-            cols.append(s1 * eye[:, :, c] * (th_[3 + c].clamp_min(_LOG_FLOOR) * own.to(F64)))
-        for j in range(3):  # roughness and slopes: central differences, differentiable by the lights
-            step = torch.zeros(9, 1, dtype=F64)
-            step[6 + j] = 1e-6
-            cols.append((_model(th_ + step, geo) - _model(th_ - step, geo)) / 2e-6)
-        jac = torch.stack(cols, -1)  # (N, 3, P, 9)
-        p_count = jac.shape[2]
-        jw = jac.permute(2, 0, 1, 3).reshape(p_count, -1, 9)
-        info = torch.bmm(jw.transpose(1, 2), jw * wt.permute(2, 0, 1).reshape(p_count, -1, 1))
-        info = info + torch.diag(_ADJUSTED_SPREAD**-2)
-        total = torch.linalg.cholesky_ex(info)[0].diagonal(dim1=1, dim2=2).log().sum() * 2
-        if not grad:
-            return float(total), None
-        total.backward()
-    return float(total.detach()), (pos_.grad, lg_.grad, th_.grad)
-
-
 def _reseeded(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor) -> Tensor:
     """``th`` (9, P) with each pixel's roughness at the value of ``_RESEED_GRID`` whose
     fit (ρ by weighted least squares, F0 and normal kept) lowers the pixel's ``misfit``
@@ -680,7 +620,6 @@ def _solve(
     scan: tuple[Tensor, float] | None = None,
     fixed: tuple[tuple[float, float], Tensor] | None = None,
     sharing: Tensor | None = None,
-    adjusted: bool | None = None,
 ) -> _Solved:
     """Gauss–Newton over the lights' positions and log gains and every pixel's 9 numbers
     ``th`` (9, P), started at ``photos.lights``' positions and ``lg`` (module doc). With
@@ -708,10 +647,7 @@ def _solve(
         wt = valid / (noise[0] * y.clamp_min(0) + noise[1])
     th, y, valid, wt, pts = th[:, used], y[..., used], valid[..., used], wt[..., used], pts[used]
     level = photos.level
-    adjusted = ADJUSTED if adjusted is None else adjusted
-    # the adjustment is not the same for every overall factor of the gains (the pixels' ρ and
-    # F0 scale against it): with it, the factor is held where the start put it
-    basis = _free_directions(lights, photos.near, gradient=level, overall=not adjusted)
+    basis = _free_directions(lights, photos.near, gradient=level)
     shared = (th[3:6] < SHARED_BELOW).all(0) if shared_f0 else torch.zeros(th.shape[1], dtype=torch.bool)
     if shared_f0 and sharing is not None:
         shared = sharing.clone()
@@ -736,44 +672,15 @@ def _solve(
         """The geometry of the lights at ``pos`` with log gains ``lg``."""
         return lm.geometry(_placed(lights, aims, pos, lg.exp()), pts)
 
-    censored = valid.bool() & (y <= photos.floor)  # read the floor: the value was there or below
-
-    def below(m: Tensor) -> tuple[Tensor, Tensor]:
-        """The censored values' (α, σ): how far the floor lies above the model, in its noise."""
-        sd = (noise[0] * m.clamp_min(0) + noise[1]).sqrt()
-        return (photos.floor - m) / sd, sd
+    def residual2(th: Tensor, geo: lm.Geometry) -> Tensor:
+        """Squared residuals in units of the noise (N, 3, P)."""
+        return wt * (y - _model(th, geo)) ** 2
 
     start, hold = th.clone(), (_SPREAD**-2 if held else torch.zeros(9, dtype=F64))[:, None]
 
     def pixel_misfit(th: Tensor, geo: lm.Geometry) -> Tensor:
         prior = (hold * (th - start) ** 2).sum(0)
-        m = _model(th, geo)
-        loss = ROBUST**2 * torch.log1p(wt * (y - m) ** 2 / ROBUST**2)
-        if censored.any():  # −2 log P(value ≤ floor), the value's misfit where it read the floor
-            alpha, _ = below(m)
-            loss = torch.where(censored, -2 * torch.special.log_ndtr(alpha), loss)
-        return loss.sum((0, 1)) + prior
-
-    def steered(th: Tensor, geo: lm.Geometry) -> tuple[Tensor, Tensor]:
-        """The steps' weights (Cauchy's, reweighted each step) and the values they fit: where
-        a value read the floor, the censored value's Gauss–Newton weight and target (Tobit's
-        curvature λ(λ + α)/σ² and gradient −λ/σ, λ the inverse Mills ratio φ(α)/Φ(α))."""
-        m = _model(th, geo)
-        irls = wt / (1 + wt * (y - m) ** 2 / ROBUST**2)
-        if not censored.any():
-            return irls, y
-        alpha, sd = below(m)
-        mills = torch.exp(-0.5 * alpha**2 - 0.5 * math.log(2 * math.pi) - torch.special.log_ndtr(alpha))
-        curve = (mills * (mills + alpha)).clamp_min(1e-6)
-        return torch.where(censored, curve / sd**2, irls), torch.where(censored, m - sd * mills / curve, y)
-
-    own = ~shared
-
-    def adjustment(th: Tensor, pos: Tensor, lg: Tensor, grad: bool = False):
-        """The adjustment's value (0 without ``adjusted``) and gradients."""
-        if not adjusted:
-            return 0.0, None
-        return _adjustment(th, pos, lg, lights, aims, pts, wt, own, grad)
+        return (ROBUST**2 * torch.log1p(residual2(th, geo) / ROBUST**2)).sum((0, 1)) + prior
 
     origin, place_weight = pos.clone(), (PLACE_SPREAD_MM**-2 if PLACE_SPREAD_MM > 0 else 0.0) * photos.near.to(F64)
 
@@ -781,39 +688,28 @@ def _solve(
         """−2 log of the places' prior (``PLACE_SPREAD_MM``), up to a constant."""
         return float((place_weight[:, None] * (pos - origin) ** 2).sum())
 
-    cost = float(pixel_misfit(th, geometry(pos, lg)).sum()) + adjustment(th, pos, lg)[0] + place_prior(pos)
+    cost = float(pixel_misfit(th, geometry(pos, lg)).sum()) + place_prior(pos)
     first, mu = cost, 1e-3
     for it in range(iterations):
         at = geometry(pos, lg)
         if extra and it in reseeds:
             th = _reseeded(th, lambda t, at=at: pixel_misfit(t, at), at, y, wt)
-            cost = float(pixel_misfit(th, at).sum()) + adjustment(th, pos, lg)[0] + place_prior(pos)
+            cost = float(pixel_misfit(th, at).sum()) + place_prior(pos)
         placed = replace(lights, position=pos)
-        irls, target = steered(th, at)
-        a, gp, b, c, gl = normal_equations(th, placed, aims, lg.exp(), pts, irls, target)
+        irls = wt / (1 + residual2(th, at) / ROBUST**2)  # Cauchy's weights, reweighted each step
+        a, gp, b, c, gl = normal_equations(th, placed, aims, lg.exp(), pts, irls, y)
         a, gp = a + torch.diag(hold[:, 0]), gp - (hold * (th - start)).T
-        if PLACE_SPREAD_MM > 0:  # the places' prior: its curvature and the gradient of −½ it
-            c = c.clone()
+        if PLACE_SPREAD_MM > 0:  # the places' prior: its curvature, and the gradient of −½ it
             c[: 3 * n, : 3 * n] += torch.diag(place_weight.repeat_interleave(3))
-            gl = gl.clone()
             gl[: 3 * n] -= (place_weight[:, None] * (pos - origin)).reshape(-1)
-        gp_fit = gp  # the pixels' own step: their numbers follow the misfit alone (a profile)
-        if adjusted:  # the lights' step follows the misfit plus the adjustment (gradients of −½ it)
-            _, (d_pos, d_lg, d_th) = adjustment(th, pos, lg, grad=True)
-            gp = gp - 0.5 * d_th.T
-            gl = gl - 0.5 * torch.cat([d_pos.reshape(-1), d_lg.reshape(-1)])
         if extra:
             a, gp, b, c, gl = _with_shared_f0(a, gp, b, c, gl, shared, grey=extra == 1)
-            gp_fit = gp_fit.clone()
-            gp_fit[shared, 3:6] = 0
         if level:
             b, c, gl = _with_level(b, c, gl, (th[7:9] - start[7:9]).sum(1))
-        if not adjusted:
-            gp_fit = gp
         for _ in range(8):
             ad, s, rhs = reduced_system(a, gp, b, c, gl, mu)
             dl = basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs)
-            dp = torch.linalg.solve(ad, (gp_fit - torch.einsum("pik,k->pi", b, dl))[..., None])[..., 0]
+            dp = torch.linalg.solve(ad, (gp - torch.einsum("pik,k->pi", b, dl))[..., None])[..., 0]
             pos_t = pos + dl[: 3 * n].reshape(n, 3)
             lg_t = lg + dl[3 * n : 6 * n].reshape(n, 3)
             base = th
@@ -826,8 +722,7 @@ def _solve(
             moved, kept = pixel_misfit(th_t, at_t), pixel_misfit(base, at_t)
             better = moved <= kept
             th_t = torch.where(better[None], th_t, base)
-            cost_t = float(torch.where(better, moved, kept).sum()) + adjustment(th_t, pos_t, lg_t)[0]
-            cost_t += place_prior(pos_t)
+            cost_t = float(torch.where(better, moved, kept).sum()) + place_prior(pos_t)
             if cost_t < cost:
                 th, pos, lg, cost = th_t, pos_t, lg_t, cost_t
                 mu = max(mu / 3, 1e-7)
@@ -838,10 +733,10 @@ def _solve(
     values = float(valid.sum())
     kept = shared if shared_f0 else None
     spread = None
-    if extra and not HOLD_F0 and not adjusted:  # how well the photos hold the shared F0 where the steps left it
+    if extra and not HOLD_F0:  # how well the photos hold the shared F0 where the steps left it
         at = geometry(pos, lg)
-        irls, target = steered(th, at)
-        a, gp, b, c, gl = normal_equations(th, replace(lights, position=pos), aims, lg.exp(), pts, irls, target)
+        irls = wt / (1 + residual2(th, at) / ROBUST**2)
+        a, gp, b, c, gl = normal_equations(th, replace(lights, position=pos), aims, lg.exp(), pts, irls, y)
         a, gp, b, c, gl = _with_shared_f0(a + torch.diag(hold[:, 0]), gp, b, c, gl, shared, grey=extra == 1)
         if level:
             b, c, gl = _with_level(b, c, gl, torch.zeros(2, dtype=F64))
@@ -996,11 +891,6 @@ def fit_positions(
         valid=(~capture.saturation(list(range(n)))).to(F64).reshape(n, 1, -1).expand(n, 3, -1),
         level=selfcal.LEVEL if level is None else level,
     )
-    if CENSORED:  # half the lowest code above the floor: below it a value reads the floor
-        y = photos.y
-        low = y[y > 0]
-        floor = 0.5 * float(low.min()) if low.numel() and bool((y <= 0).any()) else -math.inf
-        photos = replace(photos, floor=floor)
     th = _numbers(maps)
     pairs = BIAS_PAIRS if bias_pairs is None else bias_pairs
     second = pairs == 0 and (SECOND_ORDER if second_order is None else second_order)
