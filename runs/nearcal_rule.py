@@ -9,7 +9,10 @@ without → with, those more than 0.1 dB farther marked.
 (each run the logs whose names start so): with ``--margin`` the third end counts as kept
 only where that share is above M (``lightpos.WEAK_MARGIN``). With ``--by=NAME`` (runs of
 ``--level-by=agreed,NAME``, nearcal-base/) "with" is each material's line "by NAME", the
-same fit turned level so, and "without" its first line."""
+same fit turned level so, and "without" its first line. With ``--versus=DIR`` (and
+``--by=NAME``) "without" is instead each material's line "by NAME" in DIR's logs of the same
+draw (nearcal-base/: the default as it stood) and "with" the run's first line:
+``python runs/nearcal_rule.py --versus=nearcal-base --by=base nearcal-mean/s128-d1``."""
 
 import glob
 import json
@@ -20,7 +23,7 @@ from pathlib import Path
 HERE = Path(__file__).parent
 
 
-def parse(paths):
+def parse(paths, by=None):
     rows = {}
     cur = None
     for p in paths:
@@ -52,11 +55,18 @@ def parse(paths):
 
 margin = next((float(a.split("=")[1]) for a in sys.argv[1:] if a.startswith("--margin=")), None)
 by = next((a.split("=")[1] for a in sys.argv[1:] if a.startswith("--by=")), None)
+versus = next((a.split("=")[1] for a in sys.argv[1:] if a.startswith("--versus=")), None)
 runs = [a for a in sys.argv[1:] if not a.startswith("--")]
 below: dict[str, list[tuple[float, float]]] = {}  # each material's (without, with) below its ideal, per run
 for run in runs:
     paths = sorted(glob.glob(f"{HERE}/{run}*.log"))
-    rows = parse(paths)
+    if versus:  # "without": the same draw's lines "by BY" in the logs of DIR
+        rows = parse(paths)
+        base = parse(sorted(glob.glob(f"{HERE}/{versus}/{Path(run).name}*.log")), by)
+        for k, r in rows.items():
+            r["wmm"], r["wfinal"] = base[k]["mm"], base[k]["final"]
+    else:
+        rows = parse(paths, by)
     for k, r in rows.items():  # the weak end kept only above the margin: else the fit without it
         if margin is not None and "margin" in r and r["margin"] <= margin:
             r["mm"], r["final"] = r["wmm"], r["wfinal"]
