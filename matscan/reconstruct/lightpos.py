@@ -261,7 +261,7 @@ WEAK_SAME = True
 #: rule on draw 1 at 128²: the mean PSNR 0.022 dB lower, a photographed brick 1.14 dB
 #: and a gravel 0.23 dB (its lights nearer the truth) lower, the woven twill 0.61 higher.
 ENDS_BY = "misfit"
-_ENDS_BY = ("misfit", "nearest", "mean")
+_ENDS_BY = ("misfit", "nearest")
 #: How far (mm, one standard deviation per axis) the rig file's places are taken to be
 #: from the LEDs': a Gaussian prior on the near lights' positions about the places the fit
 #: starts from (0: none). The rig file is a measurement of its own; ±5 mm uniform is
@@ -945,10 +945,6 @@ def fit_positions(
         pos, lg, bias = _debiased(photos, fit, pairs, iterations, step)
     elif second:
         pos, lg, bias = _second_order(photos, fit)
-    elif ENDS_BY == "mean":  # every end's lights and gains averaged; the best-fitting end's maps
-        pos = torch.stack([v.pos for v in solved.values()]).mean(0)
-        lg = torch.stack([v.lg for v in solved.values()]).mean(0)
-        bias = {"pairs": 0}
     else:
         pos, lg, bias = fit.pos, fit.lg, {"pairs": 0}
     shift = (pos - lights.position).norm(dim=1)[near]
