@@ -161,6 +161,10 @@ three channels (``lightpos.GREY_F0``); ``--hold-f0`` holds it at its scan's valu
 the steps (``lightpos.HOLD_F0``; ``--record`` prints both, ``scanned`` and ``value``).
 ``--place-prior=S`` gives the joint fit the rig file's places as a Gaussian prior of S mm
 a axis (``lightpos.PLACE_SPREAD_MM``; the dome's ±5 mm uniform is 2.9 mm).
+``--polish=K`` gives each pixel's best roughness in another valley K Levenberg–Marquardt
+steps whenever the roughness is searched again, kept where it fits better
+(``lightpos.POLISH``), ``--polish-margin=M`` only where better by more than M
+(``lightpos.POLISH_MARGIN``).
 ``--validate-choice`` prints under each fitted material the re-rendering error of 6 photos
 left out (``reconstruct --validate 6``) with the fitted lights and with the rig file's
 places and the intensities alone: whether the photos could tell which relights better (on
@@ -190,7 +194,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
-[--ends-by=A] [--ends] [--place-prior=S]
+[--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
 [--variants] [--validate-choice] [--held-gains] [--profile] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -745,6 +749,10 @@ def main() -> None:
             lightpos.ENDS_BY = a.split("=", 1)[1]
         if a == "--hold-f0":  # the shared F0 held at its scan's value through the steps (lightpos.HOLD_F0)
             lightpos.HOLD_F0 = True
+        if a.startswith("--polish="):  # LM steps for each pixel's other roughness valley when searched (POLISH)
+            lightpos.POLISH = int(a.split("=", 1)[1])
+        if a.startswith("--polish-margin="):  # kept only where the misfit falls by more (POLISH_MARGIN)
+            lightpos.POLISH_MARGIN = float(a.split("=", 1)[1])
         if a.startswith("--place-prior="):  # the rig file's places as a prior, S mm per axis (PLACE_SPREAD_MM)
             lightpos.PLACE_SPREAD_MM = float(a.split("=", 1)[1])
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)

@@ -24,9 +24,10 @@ def rows(paths, by):
         for line in open(p):
             m = ROW.match(line)
             if m and not line.startswith(" "):
-                cur = m.group(1).strip().rstrip(" *")
+                name = m.group(1).strip()
+                cur = name.rstrip(" *")
                 v = [float(x) for x in m.groups()[1:]]
-                out[cur] = dict(mm=v[0], ideal=v[2], nominal=v[3], gains=v[4], final=v[5], read=not line.split()[1] == "*")
+                out[cur] = dict(mm=v[0], ideal=v[2], nominal=v[3], gains=v[4], final=v[5], read=not name.endswith("*"))
             elif cur and line.startswith(f"    {by} "):
                 v = [float(x) for x in line[len(by) + 4 :].split()]
                 out[cur].update(mm=v[0], final=v[5])
