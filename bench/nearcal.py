@@ -41,6 +41,13 @@ with its positions and gains (their gradient across the dome and overall factor 
 (``ITERATIONS``, 10, and ``SHARED_ITERATIONS``, 20; the replicas need the fit settled:
 ``--own-f0 --steps=30 --pairs=1``) and
 ``--side=N`` fits on N pixels along the longer side (``POSITION_SIDE``).
+``--pairs-radial`` (with ``--pairs=1``) removes only the bias's common radial part, the
+dome's scale (``lightpos.BIAS_RADIAL``). ``--parts`` prints under each material what
+each part of the fitted lights' error costs: the maps fitted at the true places moved by
+that part alone (radial, along each light's direction from the sample's centre;
+tangential; the mean shift; the mean radial shift; vertical), with the fitted gains, and
+at the true places. ``--bound`` prints beside the bound the standard deviation it gives
+the lights' mean radial shift and the rig file's own mean radial error.
 ``--second-order`` removes instead the bias its second-order formula gives
 (``lightpos.SECOND_ORDER``; with ``--own-f0 --steps=30``). The joint fit shares one F0
 among the dielectric pixels (``lightpos.SHARED_F0``, the default since its rule held under
@@ -164,7 +171,9 @@ a axis (``lightpos.PLACE_SPREAD_MM``; the dome's ±5 mm uniform is 2.9 mm).
 ``--polish=K`` gives each pixel's best roughness in another valley K Levenberg–Marquardt
 steps whenever the roughness is searched again, kept where it fits better
 (``lightpos.POLISH``), ``--polish-margin=M`` only where better by more than M
-(``lightpos.POLISH_MARGIN``).
+(``lightpos.POLISH_MARGIN``). ``--quiet-margin=M`` polishes both valleys and leaves the
+pixels whose two fit within M of one another out of the lights' fit
+(``lightpos.QUIET_MARGIN``).
 ``--validate-choice`` prints under each fitted material the re-rendering error of 6 photos
 left out (``reconstruct --validate 6``) with the fitted lights and with the rig file's
 places and the intensities alone: whether the photos could tell which relights better (on
@@ -188,13 +197,14 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--full|--matte] [--prior=K]
-[--pairs=K] [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
+[--pairs=K] [--pairs-radial] [--parts]
+[--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
 [--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--hold-f0] [--no-fallback] [--gains-only]
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
-[--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
+[--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M] [--quiet-margin=M]
 [--variants] [--validate-choice] [--held-gains] [--profile] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -595,7 +605,8 @@ def print_ends(true: LightSet, nominal: LightSet) -> None:
     """``--ends``: each start's end: its misfit, its lights' mean error (mm, before the
     turns) and root mean square distance from the rig file's places (``nominal``, as
     ``lightpos.ENDS_BY`` weighs it), the share of its pixels sharing one F0 and that F0,
-    its pixels' median roughness."""
+    its pixels' median roughness, and the share of them left out of the lights' fit
+    (``--quiet-margin``)."""
     parts = []
     for end in SOLVED:
         err = float((end.pos.float() - true.position).norm(dim=1).mean())
@@ -604,7 +615,7 @@ def print_ends(true: LightSet, nominal: LightSet) -> None:
         f0 = f"{float(end.th[3, end.shared][0]):.4f}" if share > 0 else "-"
         parts.append(
             f"misfit {end.cost:.4f} {err:.2f} mm (moved rms {moved:.2f}) share {share:.2f} F0 {f0} "
-            f"roughness {float(end.th[6].median()):.3f}"
+            f"roughness {float(end.th[6].median()):.3f}" + (f" quiet {end.quiet:.3f}" if end.quiet else "")
         )
     print(f"{'':16s} ends: " + " | ".join(parts), flush=True)
 
@@ -689,6 +700,51 @@ def profiles(cap: Capture, cfg, maps: MapSet, true: LightSet, gains, held, rig, 
         print(f"{'':16s} {line}", flush=True)
 
 
+def radial_parts(error: torch.Tensor, true: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The lights' position ``error`` (N, 3) in parts: along each light's direction from
+    the sample's centre (the frame's origin) at its ``true`` place, across it, the mean
+    shift, the mean radial shift (each light along its own direction), the vertical."""
+    u = true / true.norm(dim=1, keepdim=True)
+    along = (error * u).sum(1, keepdim=True)
+    vertical = torch.zeros_like(error)
+    vertical[:, 2] = error[:, 2]
+    return {
+        "radial": along * u,
+        "tangential": error - along * u,
+        "mean shift": error.mean(0, keepdim=True).expand_as(error),
+        "mean radial": along.mean() * u,
+        "vertical": vertical,
+    }
+
+
+def print_parts(cap: Capture, cfg, maps: MapSet, true: LightSet, pos: torch.Tensor, g2: torch.Tensor, rig) -> None:
+    """``--parts``: the novel-light PSNR of the maps fitted with the fitted gains ``g2`` at
+    the true places moved by each part of the fitted places' (``pos``) error alone."""
+    scores = []
+    for k, v in {"all": pos - true.position, **radial_parts(pos - true.position, true.position)}.items():
+        fit = reconstruct_capture(with_gains(lightpos._lit_from(cap, true.position + v), g2), cfg)
+        psnr = novel_psnr(fit.maps, fit.intensity_scale, maps, rig.field_mm)
+        scores.append(f"{k} {float(v.norm(dim=1).mean()):.2f} mm {psnr:.2f}")
+    fit = reconstruct_capture(with_gains(lightpos._lit_from(cap, true.position), g2), cfg)
+    scores.append(f"true places {novel_psnr(fit.maps, fit.intensity_scale, maps, rig.field_mm):.2f} dB")
+    print(f"{'':16s} parts: " + ", ".join(scores), flush=True)
+
+
+def radial_bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: CameraModel) -> float:
+    """The Cramér–Rao bound's standard deviation (mm) of the lights' mean radial shift,
+    with the rig file's ±5 mm as a prior and the gains' overall factor held."""
+    f64, n = torch.float64, len(gains)
+    s = information(maps, true, gains, rig, camera)
+    s[: 3 * n, : 3 * n] += torch.eye(3 * n, dtype=f64) / (5 / 3**0.5) ** 2
+    for ch in range(3):
+        u = torch.zeros(6 * n, dtype=f64)
+        u[3 * n + ch :: 3] = 1 / n
+        s += 1e3 * float(s.diagonal().max()) * torch.outer(u, u)
+    v = torch.zeros(6 * n, dtype=f64)
+    v[: 3 * n] = (true.position.double() / true.position.double().norm(dim=1, keepdim=True) / n).reshape(-1)
+    return float(v @ torch.linalg.pinv(s, hermitian=True, rtol=1e-12) @ v) ** 0.5
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -716,6 +772,8 @@ def main() -> None:
             lightpos.POSITION_SIDE = int(a.split("=", 1)[1])
         if a.startswith("--pairs="):  # the joint fit's antithetic bias replicas (lightpos.BIAS_PAIRS; 0: none)
             lightpos.BIAS_PAIRS = int(a.split("=", 1)[1])
+        if a == "--pairs-radial":  # only the common radial part of the pairs' bias removed (lightpos.BIAS_RADIAL)
+            lightpos.BIAS_RADIAL = True
         if a.startswith("--steps="):  # the joint fit's Gauss–Newton steps (ITERATIONS, SHARED_ITERATIONS)
             lightpos.ITERATIONS = lightpos.SHARED_ITERATIONS = int(a.split("=", 1)[1])
         if a == "--second-order":  # the joint fit's bias removed by its second-order formula (lightpos.SECOND_ORDER)
@@ -753,6 +811,8 @@ def main() -> None:
             lightpos.POLISH = int(a.split("=", 1)[1])
         if a.startswith("--polish-margin="):  # kept only where the misfit falls by more (POLISH_MARGIN)
             lightpos.POLISH_MARGIN = float(a.split("=", 1)[1])
+        if a.startswith("--quiet-margin="):  # pixels whose two valleys fit within M leave the lights (QUIET_MARGIN)
+            lightpos.QUIET_MARGIN = float(a.split("=", 1)[1])
         if a.startswith("--place-prior="):  # the rig file's places as a prior, S mm per axis (PLACE_SPREAD_MM)
             lightpos.PLACE_SPREAD_MM = float(a.split("=", 1)[1])
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
@@ -816,7 +876,10 @@ def main() -> None:
     elif "--levels" in sys.argv:
         print(f"{'material':16s} the true maps' slope (x, y) by each statistic")
     elif "--bound" in sys.argv:
-        print(f"{'material':16s} {'photos alone':>12s} {'+ rig file':>12s}   (RMS position error of the bound, mm)")
+        print(
+            f"{'material':16s} {'photos alone':>12s} {'+ rig file':>12s} {'mean radial':>12s} {'rig file':>12s}"
+            "   (RMS position error of the bound; its sd of the mean radial shift; the rig file's, mm)"
+        )
     elif at is not None:
         print(f"{'material':16s}  ideal    mean   worst  within 0.5 dB   mm   bound (dB; lights drawn at the bound)")
     else:
@@ -839,7 +902,10 @@ def main() -> None:
         true = moved(nominal, delta)
         if "--bound" in sys.argv:
             alone, prior = bound(maps, true, gains, rig, CameraModel(read_noise=0.002))
-            print(f"{name:16s} {alone:12.2f} {prior:12.2f}", flush=True)
+            radial = radial_bound(maps, true, gains, rig, CameraModel(read_noise=0.002))
+            u = true.position / true.position.norm(dim=1, keepdim=True)
+            off = float(((nominal.position - true.position) * u).sum(1).mean())
+            print(f"{name:16s} {alone:12.2f} {prior:12.2f} {radial:12.3f} {off:+12.3f}", flush=True)
             continue
         lit = true.with_intensity(true.intensity * gains)
         photos = simulate_images(maps, lit, rig.field_mm, CameraModel(read_noise=0.002), seed=i + draw)
@@ -947,6 +1013,8 @@ def main() -> None:
                 lights, g2, fitted, unturned = positions_and_unturned(cap, g1, cfg, level)
             both = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
             report(name, lights.position, true, maps, rig, (ideal, plain, gains_only, both))
+            if "--parts" in sys.argv:  # which part of the lights' error costs the relighting
+                print_parts(cap, cfg, maps, true, lights.position, g2, rig)
             if unturned is not None:  # the same fit without the turns (LEVEL_TURNS = 0), paired with the line above
                 before = lightpos._lit_from(cap, unturned[1])
                 fit = reconstruct_capture(with_gains(before, g2), cfg)

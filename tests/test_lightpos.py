@@ -349,15 +349,43 @@ def _check_removed(drifted, pos, fitted) -> Tensor:
     return removed
 
 
-def test_the_bias_is_measured_by_replicas_and_removed(drifted):
+@pytest.fixture(scope="module")
+def paired(drifted):
+    """The drifted fit with its bias measured by one antithetic pair and removed."""
+    cap, maps, gains, _, _ = drifted
+    return fit_positions(cap, maps, gains, iterations=30, bias_pairs=1, shared_f0=False, level=False)
+
+
+def test_the_bias_is_measured_by_replicas_and_removed(drifted, paired):
     """The antithetic pair of replicas rendered from the fit's end measures its drift from
     the truth: what it removes points along it, and the positions come nearer the truth
     (1.73 → 1.08 mm when written)."""
-    cap, maps, gains, _, _ = drifted
-    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=1, shared_f0=False, level=False)
+    pos, fitted, record = paired
     assert record["bias"]["pairs"] == 1
     removed = _check_removed(drifted, pos, fitted)
     assert record["bias"]["removed_mm"]["mean"] == pytest.approx(float(removed.norm(dim=1).mean()), abs=1e-3)
+
+
+def test_the_radial_part_of_the_bias_is_the_pairs_mean_radial_shift(drifted, paired, monkeypatch):
+    """With ``BIAS_RADIAL`` the same pair's correction is cut to the dome's scale: every
+    light moves from the fit's end along its own direction from the sample's centre by one
+    distance, the mean of the full correction's radial parts, and its gain by the
+    irradiance's 1/d² for that distance (the overall factor aside)."""
+    cap, maps, gains, _, left = drifted
+    _, end_gains, _ = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0, shared_f0=False, level=False)
+    full = paired[0]
+    monkeypatch.setattr(lightpos, "BIAS_RADIAL", True)
+    pos, fitted, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=1, shared_f0=False, level=False)
+    left, full, pos = left.double(), full.double(), pos.double()
+    d = left.norm(dim=1, keepdim=True)
+    u = left / d
+    radial = record["bias"]["radial_mm"]
+    assert radial == pytest.approx(float(((left - full) * u).sum(1).mean()), abs=1e-3)
+    assert 0.01 < abs(radial) < 2
+    assert torch.allclose(pos, left - radial * u, atol=1e-3)
+    ratio = (fitted / end_gains).double()
+    want = torch.exp(-2 * radial / d).expand_as(ratio)
+    assert torch.allclose(ratio / ratio.mean(0), want / want.mean(0), atol=1e-4)
 
 
 def test_the_second_order_formula_measures_the_bias(drifted):
@@ -903,3 +931,35 @@ def test_the_roughness_search_polishes_another_valley_back_to_the_truth(monkeypa
     assert float(misfit(polished).max()) < 1e-3
     monkeypatch.setattr(lightpos, "POLISH_MARGIN", 1e9)
     assert torch.equal(_reseeded(stuck, misfit, geo, y, wt, polish=5), grid)
+
+
+def test_the_valleys_of_noise_free_pixels_are_told_apart_and_close_ones_left_quiet():
+    """The pixels of the test above, photographed without noise: from the other valley both
+    valleys polished bring them back to the true numbers, and none is left quiet (their
+    valleys' misfits differ by far more than 3); from the truth they stay, and with a
+    margin larger than any valley's gain they stay too, those whose other valley ends
+    apart from their own quiet."""
+    from matscan.reconstruct import lm
+    from matscan.reconstruct.lightpos import F64, ROBUST, _double, _model, _polished, _valleys
+    from matscan.render import surface_points
+
+    rig = builtin_rig("dome24")
+    pts = surface_points(rig.field_mm, (4, 4), dtype=F64).reshape(-1, 3)
+    geo = lm.geometry(_double(rig.light_set()), pts)
+    truth = torch.tensor([0.30, 0.25, 0.20, 0.04, 0.04, 0.04, 0.57, 0.05, -0.03], dtype=F64)[:, None]
+    truth = truth.repeat(1, len(pts))
+    y = _model(truth, geo)
+    wt = torch.full_like(y, 1 / 0.002**2)
+
+    def misfit(t: Tensor) -> Tensor:
+        return (ROBUST**2 * torch.log1p(wt * (y - _model(t, geo)) ** 2 / ROBUST**2)).sum((0, 1))
+
+    start = truth.clone()
+    start[6], start[7], start[8], start[0:3] = 0.27, 0.07, -0.04, 0.9 * truth[0:3]
+    stuck, _ = _polished(start, misfit, geo, y, wt, 30)
+    back, quiet = _valleys(stuck, misfit, geo, y, wt, 5, 3.0)
+    assert torch.allclose(back, truth, atol=1e-4) and not quiet.any()
+    kept, quiet = _valleys(truth, misfit, geo, y, wt, 5, 3.0)
+    assert torch.allclose(kept, truth, atol=1e-6) and not quiet.any()
+    own, quiet = _valleys(truth, misfit, geo, y, wt, 5, 1e9)
+    assert quiet.any() and torch.allclose(own, truth, atol=1e-6)  # some pixels' other valley stays apart
