@@ -171,9 +171,7 @@ a axis (``lightpos.PLACE_SPREAD_MM``; the dome's ±5 mm uniform is 2.9 mm).
 ``--polish=K`` gives each pixel's best roughness in another valley K Levenberg–Marquardt
 steps whenever the roughness is searched again, kept where it fits better
 (``lightpos.POLISH``), ``--polish-margin=M`` only where better by more than M
-(``lightpos.POLISH_MARGIN``). ``--quiet-margin=M`` polishes both valleys and leaves the
-pixels whose two fit within M of one another out of the lights' fit
-(``lightpos.QUIET_MARGIN``).
+(``lightpos.POLISH_MARGIN``).
 ``--validate-choice`` prints under each fitted material the re-rendering error of 6 photos
 left out (``reconstruct --validate 6``) with the fitted lights and with the rig file's
 places and the intensities alone: whether the photos could tell which relights better (on
@@ -204,7 +202,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
 [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
-[--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M] [--quiet-margin=M]
+[--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
 [--variants] [--validate-choice] [--held-gains] [--profile] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -605,8 +603,7 @@ def print_ends(true: LightSet, nominal: LightSet) -> None:
     """``--ends``: each start's end: its misfit, its lights' mean error (mm, before the
     turns) and root mean square distance from the rig file's places (``nominal``, as
     ``lightpos.ENDS_BY`` weighs it), the share of its pixels sharing one F0 and that F0,
-    its pixels' median roughness, and the share of them left out of the lights' fit
-    (``--quiet-margin``)."""
+    its pixels' median roughness."""
     parts = []
     for end in SOLVED:
         err = float((end.pos.float() - true.position).norm(dim=1).mean())
@@ -615,7 +612,7 @@ def print_ends(true: LightSet, nominal: LightSet) -> None:
         f0 = f"{float(end.th[3, end.shared][0]):.4f}" if share > 0 else "-"
         parts.append(
             f"misfit {end.cost:.4f} {err:.2f} mm (moved rms {moved:.2f}) share {share:.2f} F0 {f0} "
-            f"roughness {float(end.th[6].median()):.3f}" + (f" quiet {end.quiet:.3f}" if end.quiet else "")
+            f"roughness {float(end.th[6].median()):.3f}"
         )
     print(f"{'':16s} ends: " + " | ".join(parts), flush=True)
 
@@ -811,8 +808,6 @@ def main() -> None:
             lightpos.POLISH = int(a.split("=", 1)[1])
         if a.startswith("--polish-margin="):  # kept only where the misfit falls by more (POLISH_MARGIN)
             lightpos.POLISH_MARGIN = float(a.split("=", 1)[1])
-        if a.startswith("--quiet-margin="):  # pixels whose two valleys fit within M leave the lights (QUIET_MARGIN)
-            lightpos.QUIET_MARGIN = float(a.split("=", 1)[1])
         if a.startswith("--place-prior="):  # the rig file's places as a prior, S mm per axis (PLACE_SPREAD_MM)
             lightpos.PLACE_SPREAD_MM = float(a.split("=", 1)[1])
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)

@@ -931,35 +931,3 @@ def test_the_roughness_search_polishes_another_valley_back_to_the_truth(monkeypa
     assert float(misfit(polished).max()) < 1e-3
     monkeypatch.setattr(lightpos, "POLISH_MARGIN", 1e9)
     assert torch.equal(_reseeded(stuck, misfit, geo, y, wt, polish=5), grid)
-
-
-def test_the_valleys_of_noise_free_pixels_are_told_apart_and_close_ones_left_quiet():
-    """The pixels of the test above, photographed without noise: from the other valley both
-    valleys polished bring them back to the true numbers, and none is left quiet (their
-    valleys' misfits differ by far more than 3); from the truth they stay, and with a
-    margin larger than any valley's gain they stay too, those whose other valley ends
-    apart from their own quiet."""
-    from matscan.reconstruct import lm
-    from matscan.reconstruct.lightpos import F64, ROBUST, _double, _model, _polished, _valleys
-    from matscan.render import surface_points
-
-    rig = builtin_rig("dome24")
-    pts = surface_points(rig.field_mm, (4, 4), dtype=F64).reshape(-1, 3)
-    geo = lm.geometry(_double(rig.light_set()), pts)
-    truth = torch.tensor([0.30, 0.25, 0.20, 0.04, 0.04, 0.04, 0.57, 0.05, -0.03], dtype=F64)[:, None]
-    truth = truth.repeat(1, len(pts))
-    y = _model(truth, geo)
-    wt = torch.full_like(y, 1 / 0.002**2)
-
-    def misfit(t: Tensor) -> Tensor:
-        return (ROBUST**2 * torch.log1p(wt * (y - _model(t, geo)) ** 2 / ROBUST**2)).sum((0, 1))
-
-    start = truth.clone()
-    start[6], start[7], start[8], start[0:3] = 0.27, 0.07, -0.04, 0.9 * truth[0:3]
-    stuck, _ = _polished(start, misfit, geo, y, wt, 30)
-    back, quiet = _valleys(stuck, misfit, geo, y, wt, 5, 3.0)
-    assert torch.allclose(back, truth, atol=1e-4) and not quiet.any()
-    kept, quiet = _valleys(truth, misfit, geo, y, wt, 5, 3.0)
-    assert torch.allclose(kept, truth, atol=1e-6) and not quiet.any()
-    own, quiet = _valleys(truth, misfit, geo, y, wt, 5, 1e9)
-    assert quiet.any() and torch.allclose(own, truth, atol=1e-6)  # some pixels' other valley stays apart

@@ -538,7 +538,6 @@ class _Solved:
     shared: Tensor | None = None  # which kept pixels share one F0 (``SHARED_F0``)
     scan: tuple[Tensor, float] | None = None  # the shared F0's scan (:func:`_shared_start`)
     f0_spread: Tensor | None = None  # the shared F0's standard error (:func:`_f0_spread`)
-    quiet: float = 0.0  # the share of the kept pixels left out of the lights' fit at the end (QUIET_MARGIN)
 
 
 def _with_shared_f0(a: Tensor, gp: Tensor, b: Tensor, c: Tensor, gl: Tensor, shared: Tensor, grey: bool = False):
@@ -580,11 +579,14 @@ def _with_level(b: Tensor, c: Tensor, gl: Tensor, moved: Tensor):
     return torch.cat([b, e], 2), c, torch.cat([gl, -moved])
 
 
-def _grid(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _reseeded(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor, polish: int = 0) -> Tensor:
     """``th`` (9, P) with each pixel's roughness at the value of ``_RESEED_GRID`` whose
     fit (ρ by weighted least squares, F0 and normal kept) lowers the pixel's ``misfit``
-    most, where one does; that misfit (P,); and each pixel's best grid fit at least
-    ``_AWAY`` from its own roughness (9, P)."""
+    (a function of th giving (P,), under the lights of ``geo``) most, where one does.
+    With ``polish`` steps, each pixel's best grid value at least ``_AWAY`` from its own
+    roughness is then fitted by that many Levenberg–Marquardt steps over its ρ, roughness
+    and normal (:func:`_polished`), and kept where it ends below the pixel's misfit: a
+    valley of the roughness whose normal differs from the pixel's (``POLISH``)."""
     own = th[6].clone()
     best, th = misfit(th), th.clone()
     away, alt = torch.full_like(best, math.inf), th.clone()
@@ -599,37 +601,11 @@ def _grid(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor) -> tuple[
         alt, away = torch.where(far[None], t, alt), torch.where(far, tried, away)
         better = tried < best
         th, best = torch.where(better[None], t, th), torch.where(better, tried, best)
-    return th, best, alt
-
-
-def _reseeded(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor, polish: int = 0) -> Tensor:
-    """``th`` (9, P) with each pixel's roughness at the value of ``_RESEED_GRID`` whose
-    fit (ρ by weighted least squares, F0 and normal kept) lowers the pixel's ``misfit``
-    (a function of th giving (P,), under the lights of ``geo``) most, where one does.
-    With ``polish`` steps, each pixel's best grid value at least ``_AWAY`` from its own
-    roughness is then fitted by that many Levenberg–Marquardt steps over its ρ, roughness
-    and normal (:func:`_polished`), and kept where it ends below the pixel's misfit: a
-    valley of the roughness whose normal differs from the pixel's (``POLISH``)."""
-    th, best, alt = _grid(th, misfit, geo, y, wt)
     if polish:
         alt, cost = _polished(alt, misfit, geo, y, wt, polish)
         better = cost < best - POLISH_MARGIN
         th = torch.where(better[None], alt, th)
     return th
-
-
-def _valleys(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor, steps: int, margin: float):
-    """As :func:`_reseeded`, but both the pixel's own valley and its other are fitted by
-    ``steps`` Levenberg–Marquardt steps, the other kept where it ends lower by more than
-    ``margin``; with the pixels whose two valleys end within ``margin`` of one another,
-    their roughness still at least half ``_AWAY`` apart (P,): those the photos' noise can
-    put in either (``QUIET_MARGIN``)."""
-    th, _, alt = _grid(th, misfit, geo, y, wt)
-    th, own = _polished(th, misfit, geo, y, wt, steps)
-    alt, other = _polished(alt, misfit, geo, y, wt, steps)
-    gain = own - other
-    apart = (alt[6] - th[6]).abs() >= _AWAY / 2  # not one valley reached from both
-    return torch.where((gain > margin)[None], alt, th), (gain.abs() <= margin) & apart
 
 
 #: With ``POLISH``, the grid value tried as another valley lies at least this far from the
@@ -645,12 +621,6 @@ POLISH = 0
 #: A pixel's other valley (``POLISH``) is kept only where it lowers the pixel's misfit by
 #: more than this (in units of the noise's variance, as the misfit counts).
 POLISH_MARGIN = 0.0
-#: Where above 0, when the roughness is searched again each pixel's own valley and its
-#: other are both polished (``POLISH`` steps, at least 5), the other kept where it fits by
-#: more than this better, and the pixels whose two valleys fit within this of one another
-#: leave the lights' fit until the next search (:func:`_valleys`): which valley the noise
-#: puts them in should not move the lights. Off (0).
-QUIET_MARGIN = 0.0
 
 
 def _polished(th: Tensor, misfit, geo: lm.Geometry, y: Tensor, wt: Tensor, steps: int) -> tuple[Tensor, Tensor]:
@@ -791,33 +761,22 @@ def _solve(
 
     cost = float(pixel_misfit(th, geometry(pos, lg)).sum()) + place_prior(pos)
     first, mu = cost, 1e-3
-    live = torch.ones(th.shape[1], dtype=torch.bool)  # the pixels the lights are fitted to (QUIET_MARGIN)
     for it in range(iterations):
         at = geometry(pos, lg)
         if extra and it in reseeds:
-            if QUIET_MARGIN > 0:
-                th, quiet = _valleys(th, lambda t, at=at: pixel_misfit(t, at), at, y, wt, max(POLISH, 5), QUIET_MARGIN)
-                live = ~quiet
-            else:
-                th = _reseeded(th, lambda t, at=at: pixel_misfit(t, at), at, y, wt, POLISH)
-            cost = float(pixel_misfit(th, at)[live].sum()) + place_prior(pos)
-        if not live.any():  # every pixel quiet: nothing to fit the lights to
-            break
+            th = _reseeded(th, lambda t, at=at: pixel_misfit(t, at), at, y, wt, POLISH)
+            cost = float(pixel_misfit(th, at).sum()) + place_prior(pos)
         placed = replace(lights, position=pos)
-        irls = wt * live / (1 + residual2(th, at) / ROBUST**2)  # Cauchy's weights, reweighted each step
+        irls = wt / (1 + residual2(th, at) / ROBUST**2)  # Cauchy's weights, reweighted each step
         a, gp, b, c, gl = normal_equations(th, placed, aims, lg.exp(), pts, irls, y)
         a, gp = a + torch.diag(hold[:, 0]), gp - (hold * (th - start)).T
-        if not live.all():  # the quiet pixels: no step of their own, no part in the lights' or F0's
-            a[~live] = torch.eye(9, dtype=F64)
-            gp[~live] = 0
         if PLACE_SPREAD_MM > 0:  # the places' prior: its curvature, and the gradient of −½ it
             c[: 3 * n, : 3 * n] += torch.diag(place_weight.repeat_interleave(3))
             gl[: 3 * n] -= (place_weight[:, None] * (pos - origin)).reshape(-1)
         if extra:
-            a, gp, b, c, gl = _with_shared_f0(a, gp, b, c, gl, shared & live, grey=extra == 1)
+            a, gp, b, c, gl = _with_shared_f0(a, gp, b, c, gl, shared, grey=extra == 1)
         if level:
             b, c, gl = _with_level(b, c, gl, (th[7:9] - start[7:9]).sum(1))
-            b = b * live[:, None, None]
         for _ in range(8):
             ad, s, rhs = reduced_system(a, gp, b, c, gl, mu)
             dl = basis @ torch.linalg.solve(basis.T @ s @ basis, basis.T @ rhs)
@@ -834,7 +793,7 @@ def _solve(
             moved, kept = pixel_misfit(th_t, at_t), pixel_misfit(base, at_t)
             better = moved <= kept
             th_t = torch.where(better[None], th_t, base)
-            cost_t = float(torch.where(better, moved, kept)[live].sum()) + place_prior(pos_t)
+            cost_t = float(torch.where(better, moved, kept).sum()) + place_prior(pos_t)
             if cost_t < cost:
                 th, pos, lg, cost = th_t, pos_t, lg_t, cost_t
                 mu = max(mu / 3, 1e-7)
@@ -842,18 +801,6 @@ def _solve(
             mu *= 4
         if progress is not None:
             progress(it + 1)
-    if not live.all():  # the quiet pixels fitted at the lights' end, so that every end's misfit has every pixel
-        q = ~live
-        at = lm.geometry(_placed(lights, aims, pos, lg.exp()), pts[q])
-        yq, wq, sq, hq = y[..., q], wt[..., q], start[:, q], hold
-
-        def quiet_misfit(t: Tensor) -> Tensor:
-            prior = (hq * (t - sq) ** 2).sum(0)
-            return (ROBUST**2 * torch.log1p(wq * (yq - _model(t, at)) ** 2 / ROBUST**2)).sum((0, 1)) + prior
-
-        th = th.clone()
-        th[:, q] = _polished(th[:, q], quiet_misfit, at, yq, wq, max(POLISH, 5))[0]
-        cost = float(pixel_misfit(th, geometry(pos, lg)).sum()) + place_prior(pos)
     values = float(valid.sum())
     kept = shared if shared_f0 else None
     spread = None
@@ -865,8 +812,7 @@ def _solve(
         if level:
             b, c, gl = _with_level(b, c, gl, torch.zeros(2, dtype=F64))
         spread = _f0_spread(reduced_system(a, gp, b, c, gl, 0.0)[1], basis, n, extra, level)
-    quiet = round(float((~live).double().mean()), 4)
-    return _Solved(pos, lg, used, th, noise, first / values, cost / values, kept, scan, spread, quiet)
+    return _Solved(pos, lg, used, th, noise, first / values, cost / values, kept, scan, spread)
 
 
 def _f0_spread(s: Tensor, basis: Tensor, n: int, extra: int, level: bool) -> Tensor:
@@ -1108,7 +1054,6 @@ def fit_positions(
         # started at, the rig file's (``ENDS_BY``)
         **({"ends_moved_mm": {k: round(v, 3) for k, v in distance.items()}} if len(ends) > 1 else {}),
         "moved_mm": _mean_max(shift),
-        **({"quiet": {k: v.quiet for k, v in solved.items()}} if QUIET_MARGIN > 0 else {}),
         "bias": bias,
     }
     if fit.shared is not None:
