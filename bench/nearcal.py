@@ -1036,7 +1036,7 @@ def main() -> None:
             if "--ends" in sys.argv:  # each start's end
                 print_ends(true, nominal)
             if "--record" in sys.argv:  # what the joint fit found besides the lights
-                keys = ("pixels_used", "misfit_per_value", "ends_moved_mm", "shared_f0", "level_turns")
+                keys = ("pixels_used", "misfit_per_value", "ends_moved_mm", "shared_f0", "level_turns", "bias")
                 shown = {k: fitted[k] for k in keys if k in fitted}
                 angle, mean, most = turned(lights.position, true.position)
                 print(
