@@ -388,6 +388,28 @@ def test_the_radial_part_of_the_bias_is_the_pairs_mean_radial_shift(drifted, pai
     assert torch.allclose(ratio / ratio.mean(0), want / want.mean(0), atol=1e-4)
 
 
+def test_the_replicas_share_the_f0_as_the_photos_did(drifted, monkeypatch):
+    """Where the fit shares one F0 the pair's replicas are fitted the same way: sharing it
+    among the same pixels, started at the kept end's F0 and maps, in its noise model."""
+    cap, maps, gains, _, _ = drifted
+    calls, solve = [], lightpos._solve
+
+    def spy(photos, th, lg, iterations, progress=None, **kw):
+        calls.append((th.clone(), kw))
+        calls[-1] += (solve(photos, th, lg, iterations, progress, **kw),)
+        return calls[-1][2]
+
+    monkeypatch.setattr(lightpos, "_solve", spy)
+    fit_positions(cap, maps, gains, iterations=4, bias_pairs=1, shared_f0=True, level=False)
+    assert len(calls) == 4  # the two starts, then the pair's two replicas
+    kept = min(calls[:2], key=lambda c: c[2].cost)[2]
+    assert kept.shared is not None and float(kept.shared.double().mean()) > 0.9
+    for th, kw, _ in calls[2:]:
+        assert kw["shared_f0"] is True and torch.equal(kw["sharing"], kept.shared)
+        assert torch.equal(th, kept.th) and kw["fixed"][0] == kept.noise and bool(kw["fixed"][1].all())
+        assert torch.equal(kw["scan"][1][:, 0], kept.th[3:6, kept.shared][:, 0])
+
+
 def test_the_second_order_formula_measures_the_bias(drifted):
     """The same drift measured instead by the fit's bias formula (Box 1971): one
     Gauss–Newton step towards the mean residual the pixels' spread leaves where the model
