@@ -419,12 +419,7 @@ def at_bound(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, 
     draws' mean position error, and the bound's RMS."""
     f64 = torch.float64
     n = len(gains)
-    s = information(maps, true, gains, rig, CameraModel(read_noise=0.002))
-    s[: 3 * n, : 3 * n] += torch.eye(3 * n, dtype=f64) / (5 / 3**0.5) ** 2
-    for ch in range(3):  # the overall factor of each channel's gains, which the maps take up, held at 0
-        u = torch.zeros(6 * n, dtype=f64)
-        u[3 * n + ch :: 3] = 1 / n
-        s += 1e3 * float(s.diagonal().max()) * torch.outer(u, u)
+    s = held_information(maps, true, gains, rig, CameraModel(read_noise=0.002))
     val, vec = torch.linalg.eigh(s)
     root = vec * val.clamp_min(1e-12 * float(val.max())).rsqrt()  # δ = root · z has the covariance s⁻¹
     z = torch.randn(6 * n, draws, generator=torch.Generator().manual_seed(seed), dtype=f64)
@@ -727,9 +722,9 @@ def print_parts(cap: Capture, cfg, maps: MapSet, true: LightSet, pos: torch.Tens
     print(f"{'':16s} parts: " + ", ".join(scores), flush=True)
 
 
-def radial_bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: CameraModel) -> float:
-    """The Cramér–Rao bound's standard deviation (mm) of the lights' mean radial shift,
-    with the rig file's ±5 mm as a prior and the gains' overall factor held."""
+def held_information(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: CameraModel) -> torch.Tensor:
+    """:func:`information` with the rig file's ±5 mm as a prior and the overall factor of
+    each channel's gains, which the maps take up, held at 0 (as the joint fit holds it)."""
     f64, n = torch.float64, len(gains)
     s = information(maps, true, gains, rig, camera)
     s[: 3 * n, : 3 * n] += torch.eye(3 * n, dtype=f64) / (5 / 3**0.5) ** 2
@@ -737,6 +732,14 @@ def radial_bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera:
         u = torch.zeros(6 * n, dtype=f64)
         u[3 * n + ch :: 3] = 1 / n
         s += 1e3 * float(s.diagonal().max()) * torch.outer(u, u)
+    return s
+
+
+def radial_bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera: CameraModel) -> float:
+    """The Cramér–Rao bound's standard deviation (mm) of the lights' mean radial shift,
+    with the rig file's ±5 mm as a prior and the gains' overall factor held."""
+    f64, n = torch.float64, len(gains)
+    s = held_information(maps, true, gains, rig, camera)
     v = torch.zeros(6 * n, dtype=f64)
     v[: 3 * n] = (true.position.double() / true.position.double().norm(dim=1, keepdim=True) / n).reshape(-1)
     return float(v @ torch.linalg.pinv(s, hermitian=True, rtol=1e-12) @ v) ** 0.5
