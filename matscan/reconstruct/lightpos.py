@@ -220,8 +220,8 @@ BIAS_PAIRS = 0
 #: With ``BIAS_PAIRS``, remove only the bias's common radial part: every near light moved
 #: along its own direction from the sample's centre by the mean of the pair's radial
 #: shifts, and its gain changed as its distance changes the irradiance (1/d²). The dome's
-#: scale is the lights' least determined collective mode that relighting feels (a woven
-#: twill's fitted dome 0.62 mm too large, where the Cramér–Rao bound gives that mode 0.22
+#: scale is a collective mode the photos hold weakly and relighting feels (a woven
+#: twill's fitted dome 0.62 mm too large, where the Cramér–Rao bound gives that mode 0.20
 #: mm; docs/rti.md), and one number carries less of the replicas' noise than 144. Off.
 BIAS_RADIAL = False
 #: Remove the fit's bias by its second-order formula, each pixel's numbers then held near
