@@ -222,7 +222,10 @@ BIAS_PAIRS = 0
 #: shifts, and its gain changed as its distance changes the irradiance (1/d²). The dome's
 #: scale is a collective mode the photos hold weakly and relighting feels (a woven
 #: twill's fitted dome 0.62 mm too large, where the Cramér–Rao bound gives that mode 0.20
-#: mm; docs/rti.md), and one number carries less of the replicas' noise than 144. Off.
+#: mm; docs/rti.md), and one number carries less of the replicas' noise than 144. Off:
+#: it passed its rule on two draws of 25 materials (the twill 0.79 → 0.40 dB below its
+#: ideal dome) and failed it on the third, where the pair's steady radial bias took a
+#: paper and a leather 0.5 and 0.7 dB farther below their ideal (docs/rti.md).
 BIAS_RADIAL = False
 #: Remove the fit's bias by its second-order formula, each pixel's numbers then held near
 #: their start with the spread ``_SPREAD`` during the fit (:func:`fit_positions`, module
