@@ -45,7 +45,8 @@ with its positions and gains (their gradient across the dome and overall factor 
 dome's scale (``lightpos.BIAS_RADIAL``). ``--parts`` prints under each material what
 each part of the fitted lights' error costs: the maps fitted at the true places moved by
 that part alone (radial, along each light's direction from the sample's centre;
-tangential; the mean shift; the mean radial shift; vertical), with the fitted gains, and
+tangential; the mean shift; the mean radial shift, signed, + where the fitted dome is
+too large; vertical), with the fitted gains, and
 at the true places. ``--bound`` prints beside the bound the standard deviation it gives
 the lights' mean radial shift and the rig file's own mean radial error.
 ``--second-order`` removes instead the bias its second-order formula gives
@@ -716,7 +717,10 @@ def print_parts(cap: Capture, cfg, maps: MapSet, true: LightSet, pos: torch.Tens
     for k, v in {"all": pos - true.position, **radial_parts(pos - true.position, true.position)}.items():
         fit = reconstruct_capture(with_gains(lightpos._lit_from(cap, true.position + v), g2), cfg)
         psnr = novel_psnr(fit.maps, fit.intensity_scale, maps, rig.field_mm)
-        scores.append(f"{k} {float(v.norm(dim=1).mean()):.2f} mm {psnr:.2f}")
+        size = f"{float(v.norm(dim=1).mean()):.2f}"
+        if k == "mean radial":  # signed: + the fitted dome too large
+            size = f"{float((v * true.position).sum(1).div(true.position.norm(dim=1)).mean()):+.2f}"
+        scores.append(f"{k} {size} mm {psnr:.2f}")
     fit = reconstruct_capture(with_gains(lightpos._lit_from(cap, true.position), g2), cfg)
     scores.append(f"true places {novel_psnr(fit.maps, fit.intensity_scale, maps, rig.field_mm):.2f} dB")
     print(f"{'':16s} parts: " + ", ".join(scores), flush=True)
@@ -1094,7 +1098,8 @@ def main() -> None:
         g2, _ = estimate_gains(cap2, cfg)
         both = reconstruct_capture(with_gains(cap2, g2), cfg)
         report(name, pos, true, maps, rig, (ideal, plain, gains_only, both))
-    print(f"{len(materials)} materials at {size}² in {time.perf_counter() - t0:.0f} s")
+    ran = sum(1 for name, _ in materials if not only or any(name.startswith(o) for o in only))
+    print(f"{ran} materials at {size}² in {time.perf_counter() - t0:.0f} s")
 
 
 if __name__ == "__main__":
