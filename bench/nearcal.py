@@ -42,7 +42,9 @@ with its positions and gains (their gradient across the dome and overall factor 
 ``--own-f0 --steps=30 --pairs=1``) and
 ``--side=N`` fits on N pixels along the longer side (``POSITION_SIDE``).
 ``--pairs-radial`` (with ``--pairs=1``) removes only the bias's common radial part, the
-dome's scale (``lightpos.BIAS_RADIAL``). ``--parts`` prints under each material what
+dome's scale (``lightpos.BIAS_RADIAL``); ``--pair-seed=K`` draws the pairs' noise from
+another seed (``lightpos.PAIR_SEED``); ``--replica-searched`` fits each replica from
+a second, searched start too (``lightpos.REPLICA_SEARCHED``). ``--parts`` prints under each material what
 each part of the fitted lights' error costs: the maps fitted at the true places moved by
 that part alone (radial, along each light's direction from the sample's centre;
 tangential; the mean shift; the mean radial shift, signed, + where the fitted dome is
@@ -108,9 +110,18 @@ model, which its starts share; the first fit's is the profiles').
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
 
+``--oracle-pair`` prints instead the antithetic pair's bias (as ``--pairs=1 --pairs-radial``
+measures it at the fit's end) measured at the truth: the replicas rendered from the true
+maps (their dielectric pixels' F0 the shared F0's scan, as the fit shares it; their own
+roughness, not the scan's), the true
+places and the true gains (128², where the joint fit uses every pixel), each fitted as the
+photos are: the shift of the lights' mean radial place (mm, + outward) and the mean of
+each light's shift, beside which the pair at the fit's end (the record's ``radial_mm``) can be read.
+
 ``--from-truth`` starts the joint fit (``fit_positions``, its bias left in, 30 steps; with
 ``--own-f0`` as every run of it before the shared F0 became the default) at
-the true lights, gains and maps and prints how far it drifts (mm) and where it leaves the
+the true lights, gains and maps and prints how far it drifts (mm; and the lights' mean
+radial shift, signed) and where it leaves the
 shared F0 (its value, the scan's and its standard error ``se``): with the camera's
 noise, or with ``--from-truth=S`` on float photos with Gaussian noise S alone,
 ``--from-truth=shot`` with the camera's shot and read noise in 16-bit linear files, and
@@ -196,12 +207,12 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--full|--matte] [--prior=K]
-[--pairs=K] [--pairs-radial] [--parts]
+[--pairs=K] [--pairs-radial] [--pair-seed=K] [--replica-searched] [--parts]
 [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
 [--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--hold-f0] [--no-fallback] [--gains-only]
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
-[--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
+[--oracle-pair] [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
 [--variants] [--validate-choice] [--held-gains] [--profile] [--held-out|--others] [--only=NAMES]
@@ -613,6 +624,35 @@ def print_ends(true: LightSet, nominal: LightSet) -> None:
     print(f"{'':16s} ends: " + " | ".join(parts), flush=True)
 
 
+def oracle_pair(cap: Capture, maps: MapSet, gains: torch.Tensor, size: int) -> str:
+    """``--oracle-pair``: the joint fit's steps from the true lights, gains and maps of
+    ``cap`` (its lights the true ones) replaced by none, so that the pair of replicas
+    (``BIAS_PAIRS`` = 1, ``BIAS_RADIAL``) is rendered from the truth and measures the
+    bias there; the replicas themselves take the fit's steps."""
+    if size > lightpos.POSITION_SIDE:
+        raise SystemExit(f"--oracle-pair: at most {lightpos.POSITION_SIDE}², where the joint fit uses every pixel")
+    solve, debiased, inside = lightpos._solve, lightpos._debiased, []
+
+    def start_only(photos, th, lg, iterations, progress=None, **kw):
+        if inside:
+            return solve(photos, th, lg, iterations, progress, **kw)
+        at = solve(photos, th, lg, 0, progress, **kw)
+        return replace(at, cost=math.inf) if kw.get("searched") else at  # the true roughness kept
+
+    def marked(*args, **kwargs):
+        inside.append(1)
+        return debiased(*args, **kwargs)
+
+    was = lightpos.BIAS_RADIAL
+    lightpos._solve, lightpos._debiased, lightpos.BIAS_RADIAL = start_only, marked, True
+    try:
+        _, _, record = fit_positions(cap, maps, gains, bias_pairs=1)
+    finally:
+        lightpos._solve, lightpos._debiased, lightpos.BIAS_RADIAL = solve, debiased, was
+    bias = record["bias"]
+    return f"radial {bias['radial_mm']:+.3f} mm, each light's {bias['removed_mm']['mean']:.3f} mean"
+
+
 @contextlib.contextmanager
 def true_start(maps: MapSet, size: int):
     """``--true-start``: within it, ``estimate_positions`` starts the joint fit from the true
@@ -778,6 +818,10 @@ def main() -> None:
             lightpos.BIAS_PAIRS = int(a.split("=", 1)[1])
         if a == "--pairs-radial":  # only the common radial part of the pairs' bias removed (lightpos.BIAS_RADIAL)
             lightpos.BIAS_RADIAL = True
+        if a == "--replica-searched":  # each replica also fitted from a searched start (REPLICA_SEARCHED)
+            lightpos.REPLICA_SEARCHED = True
+        if a.startswith("--pair-seed="):  # the seed of the pairs' noise (lightpos.PAIR_SEED)
+            lightpos.PAIR_SEED = int(a.split("=", 1)[1])
         if a.startswith("--steps="):  # the joint fit's Gauss–Newton steps (ITERATIONS, SHARED_ITERATIONS)
             lightpos.ITERATIONS = lightpos.SHARED_ITERATIONS = int(a.split("=", 1)[1])
         if a == "--second-order":  # the joint fit's bias removed by its second-order formula (lightpos.SECOND_ORDER)
@@ -913,6 +957,10 @@ def main() -> None:
         photos = simulate_images(maps, lit, rig.field_mm, CameraModel(read_noise=0.002), seed=i + draw)
         saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
         files = tuple(f"led_{k:02d}.png" for k in range(24))
+        if "--oracle-pair" in sys.argv:  # the pair's bias measured at the truth
+            cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), true, files)
+            print(f"{name:16s} {oracle_pair(cap, maps, gains, size)}", flush=True)
+            continue
         if truth_noise is not None:  # --from-truth: the fit started at the truth, 30 steps
             encoding = "srgb"
             if "--reduced" in sys.argv:  # as many pixels as the joint fit uses (every ⌈size / POSITION_SIDE⌉-th)
@@ -934,9 +982,11 @@ def main() -> None:
             cap = Capture(rig, rig.field_mm, encoding, photos, saturated, tuple(range(24)), true, files)
             pos, _, record = fit_positions(cap, maps, gains, iterations=30, bias_pairs=0)
             err = (pos - true.position).norm(dim=1)
+            u = true.position / true.position.norm(dim=1, keepdim=True)
+            radial = f"  mean radial {float(((pos - true.position) * u).sum(1).mean()):+.3f} mm"
             shared = record.get("shared_f0") or {}
             f0 = f"  shared F0 {shared.get('value')} scanned {shared.get('scanned')} se {shared.get('se')}"
-            print(f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}" + f0, flush=True)
+            print(f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}" + radial + f0, flush=True)
             continue
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
         if at is not None:  # what an estimator at the bound would relight at
