@@ -410,6 +410,32 @@ def test_the_replicas_share_the_f0_as_the_photos_did(drifted, monkeypatch):
         assert torch.equal(kw["scan"][1][:, 0], kept.th[3:6, kept.shared][:, 0])
 
 
+def test_replicas_fitted_from_a_searched_start_too_keep_the_better_end(drifted, monkeypatch):
+    """With ``REPLICA_SEARCHED`` each replica is also fitted from a second start, every
+    pixel's roughness searched at the replica's own scan of the F0, as the photos' fit
+    has two starts, and the end that fits that replica better is the one its shift is
+    measured by."""
+    cap, maps, gains, _, _ = drifted
+    calls, solve = [], lightpos._solve
+
+    def spy(photos, th, lg, iterations, progress=None, **kw):
+        calls.append((th.clone(), kw, solve(photos, th, lg, iterations, progress, **kw)))
+        return calls[-1][2]
+
+    monkeypatch.setattr(lightpos, "REPLICA_SEARCHED", True)
+    monkeypatch.setattr(lightpos, "_solve", spy)
+    _, _, record = fit_positions(cap, maps, gains, iterations=4, bias_pairs=1, shared_f0=True, level=False)
+    assert len(calls) == 6  # the photos' two starts, then each replica's two
+    kept = min(calls[:2], key=lambda c: c[2].cost)[2]
+    ends = []
+    for (_, first, one), (th, second, two) in zip(calls[2::2], calls[3::2], strict=True):
+        assert not first.get("searched") and second["searched"] is True and second.get("scan") is None
+        assert torch.equal(th, kept.th) and torch.equal(second["sharing"], kept.shared)
+        ends.append(two if two.cost < one.cost else one)
+    shift = (ends[0].pos + ends[1].pos).double() / 2 - kept.pos.double()
+    assert record["bias"]["removed_mm"]["mean"] == pytest.approx(float(shift.norm(dim=1).mean()), abs=2e-3)
+
+
 def test_the_second_order_formula_measures_the_bias(drifted):
     """The same drift measured instead by the fit's bias formula (Box 1971): one
     Gauss–Newton step towards the mean residual the pixels' spread leaves where the model
