@@ -44,7 +44,9 @@ with its positions and gains (their gradient across the dome and overall factor 
 ``--pairs-radial`` (with ``--pairs=1``) removes only the bias's common radial part, the
 dome's scale (``lightpos.BIAS_RADIAL``); ``--pair-seed=K`` draws the pairs' noise from
 another seed (``lightpos.PAIR_SEED``); ``--replica-searched`` fits each replica from
-a second, searched start too (``lightpos.REPLICA_SEARCHED``). ``--parts`` prints under each material what
+a second, searched start too (``lightpos.REPLICA_SEARCHED``); ``--pairs-iterated`` measures
+the pair's bias again at each replica's end and removes twice the first less the second
+(``lightpos.BIAS_ITERATED``). ``--parts`` prints under each material what
 each part of the fitted lights' error costs: the maps fitted at the true places moved by
 that part alone (radial, along each light's direction from the sample's centre;
 tangential; the mean shift; the mean radial shift, signed, + where the fitted dome is
@@ -207,7 +209,7 @@ noise; the materials stay the same); 0, the default, is the draw of the tables i
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--full|--matte] [--prior=K]
-[--pairs=K] [--pairs-radial] [--pair-seed=K] [--replica-searched] [--parts]
+[--pairs=K] [--pairs-radial] [--pairs-iterated] [--pair-seed=K] [--replica-searched] [--parts]
 [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
 [--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--hold-f0] [--no-fallback] [--gains-only]
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
@@ -820,6 +822,8 @@ def main() -> None:
             lightpos.BIAS_RADIAL = True
         if a == "--replica-searched":  # each replica also fitted from a searched start (REPLICA_SEARCHED)
             lightpos.REPLICA_SEARCHED = True
+        if a == "--pairs-iterated":  # the pair's bias measured again at its replicas' ends (BIAS_ITERATED)
+            lightpos.BIAS_ITERATED = True
         if a.startswith("--pair-seed="):  # the seed of the pairs' noise (lightpos.PAIR_SEED)
             lightpos.PAIR_SEED = int(a.split("=", 1)[1])
         if a.startswith("--steps="):  # the joint fit's Gauss–Newton steps (ITERATIONS, SHARED_ITERATIONS)

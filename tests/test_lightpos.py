@@ -436,6 +436,40 @@ def test_replicas_fitted_from_a_searched_start_too_keep_the_better_end(drifted, 
     assert record["bias"]["removed_mm"]["mean"] == pytest.approx(float(shift.norm(dim=1).mean()), abs=2e-3)
 
 
+def test_the_iterated_pair_removes_twice_the_first_bias_less_the_second(drifted, monkeypatch):
+    """With ``BIAS_ITERATED`` the pair's bias is measured again at each replica's end, from
+    replicas rendered from that end's maps, lights and gains (Hall & Martin's iterated
+    bootstrap), and the correction is twice the first measure less the mean second."""
+    cap, maps, gains, _, _ = drifted
+    calls, solve = [], lightpos._solve
+
+    def spy(photos, th, lg, iterations, progress=None, **kw):
+        calls.append((photos, th.clone(), lg.clone(), solve(photos, th, lg, iterations, progress, **kw)))
+        return calls[-1][3]
+
+    monkeypatch.setattr(lightpos, "BIAS_ITERATED", True)
+    monkeypatch.setattr(lightpos, "_solve", spy)
+    pos, _, record = fit_positions(cap, maps, gains, iterations=4, bias_pairs=1, shared_f0=False, level=False)
+    assert len(calls) == 7  # the photos' fit, its pair, then a pair at each of the pair's ends
+    fit, first, second = calls[0][3], calls[1:3], calls[3:]
+    for k, (replica, _, _, end) in enumerate(first):
+        for photos, th, lg, _ in second[2 * k : 2 * k + 2]:  # started at that end, rendered from it
+            assert torch.equal(th, end.th) and torch.equal(lg, end.lg)
+            assert torch.equal(photos.lights.position, end.pos)
+            assert torch.equal(photos.pts, replica.pts)
+        mean_y = (second[2 * k][0].y + second[2 * k + 1][0].y) / 2  # the pair's noise cancels
+        geo = lightpos._placed(replace(replica.lights, position=end.pos), replica.aims, end.pos, end.lg.exp())
+        assert torch.allclose(mean_y, lightpos._render(end.th, geo, replica.pts), atol=1e-9)
+    s1 = sum(c[3].pos for c in first) / 2 - fit.pos
+    s2 = sum((second[2 * k][3].pos + second[2 * k + 1][3].pos) / 2 - first[k][3].pos for k in range(2)) / 2
+    want = fit.pos - (2 * s1 - s2)
+    assert torch.allclose(pos.double(), want, atol=1e-4)
+    out = fit.pos / fit.pos.norm(dim=1, keepdim=True)
+    assert record["bias"]["first_radial_mm"] == pytest.approx(float((s1 * out).sum(1).mean()), abs=1e-3)
+    assert record["bias"]["second_radial_mm"] == pytest.approx(float((s2 * out).sum(1).mean()), abs=1e-3)
+    assert record["bias"]["removed_mm"]["mean"] == pytest.approx(float((2 * s1 - s2).norm(dim=1).mean()), abs=1e-3)
+
+
 def test_the_second_order_formula_measures_the_bias(drifted):
     """The same drift measured instead by the fit's bias formula (Box 1971): one
     Gauss–Newton step towards the mean residual the pixels' spread leaves where the model
