@@ -813,7 +813,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="--self-calibrate-positions with one F0 for the sample's dielectric pixels in that fit, its default: "
         "on simulated domes whose LEDs have their own brightness gradients, relighting 0.16-0.27 dB nearer the "
-        "ideal dome's on average (paper, grass, gravel: up to 2.8 dB) than with --own-f0 (docs/rti.md)",
+        "ideal dome's on average (paper, grass, gravel: up to 2.8 dB) than with --own-f0 (docs/rti-record.md)",
     )
     f0.add_argument(
         "--own-f0",
@@ -822,7 +822,7 @@ def build_parser() -> argparse.ArgumentParser:
         const=False,
         help="--self-calibrate-positions with each pixel's own F0 in that fit, as before the shared one became its "
         "default: a third of the time at 512² (29 s against 92 s on 2 cores), relit worse on most simulated "
-        "materials (docs/rti.md)",
+        "materials (docs/rti-record.md)",
     )
     p.add_argument(
         "--led-gradient",
@@ -836,7 +836,7 @@ def build_parser() -> argparse.ArgumentParser:
         "choose, but none where the calibration scales every light, as a "
         "grey card measures them); on simulated domes with LEDs ±20%% at random, fit relit 0.8-2.0 dB better on "
         "average than none, and on samples tilted 5° up to 22 dB worse; choose within 0.15 dB of fit on level "
-        "samples and 0.4-22 dB better where they differed on tilted ones, at twice the time (docs/rti.md)",
+        "samples and 0.4-22 dB better where they differed on tilted ones, at twice the time (docs/rti-record.md)",
     )
     p.add_argument(
         "--validate",
@@ -1282,7 +1282,7 @@ def build_parser() -> argparse.ArgumentParser:
         action=argparse.BooleanOptionalAction,
         default=None,
         help="whether a new run's network gets the per-pixel photometric-stereo estimate and corrects it "
-        "(default: yes; a resumed run keeps its own; docs/rti.md)",
+        "(default: yes; a resumed run keeps its own; docs/rti-record.md)",
     )
     p.set_defaults(func=cmd_train_anyrig)
 

@@ -1,4 +1,4 @@
-"""The third start's rules (docs/rti.md) read from bench/nearcal.py's logs in nearcal-weak/
+"""The third start's rules (docs/rti-record.md) read from bench/nearcal.py's logs in nearcal-weak/
 and nearcal-same/: per run, the mean final PSNR (a), the count within 0.5 dB of the ideal
 dome (c) and the fitted materials' mean light error (d) without → with the third start
 (the "without weak" or "as default" line where another end was kept, else the first line), then each material

@@ -168,7 +168,7 @@ def test_a_level_sample_gives_a_brightness_gradient_back():
 
 def test_a_tilted_sample_falls_back_to_no_gradient(monkeypatch):
     """A painted sample tilted 10° about y (every normal turned), photographed exactly
-    (clipped at 1, clipped pixels marked saturated: docs/rti.md's pilot) under LEDs ±20%
+    (clipped at 1, clipped pixels marked saturated: docs/rti-record.md's pilot) under LEDs ±20%
     without a gradient: taken as level, the tilt becomes a gradient whose
     gains re-render the photos worse than equal intensities, so they are refused; the
     second estimate, for a dome without a gradient, passes the check and comes back

@@ -86,7 +86,7 @@ class ReconstructConfig:
     self_calibrate: bool = False  # estimate each light's RGB intensity with the maps (selfcal)
     self_calibrate_positions: bool = False  # and the near lights' positions (lightpos); needs self_calibrate
     # in that fit, one F0 for the dielectric pixels (True) or each pixel's own (False); None:
-    # lightpos.SHARED_F0 (one, docs/rti.md says why); other than None needs self_calibrate_positions
+    # lightpos.SHARED_F0 (one, docs/rti-record.md says why); other than None needs self_calibrate_positions
     shared_f0: bool | None = None
     # what fixes the self-calibrated gains' gradient across the dome, which a tilted sample
     # photographs like (selfcal.fits_gradient): "fit" (the sample lies level, the gradient is
@@ -400,7 +400,7 @@ def reconstruct_capture(
                 "--self-calibrate-positions: the diffuse reflection does not show the lights' intensities (a metal or "
                 "a black fabric shows too little), so they were fitted with the maps, every light held at its place; "
                 "the rig file's positions are kept (placed from such photos, a simulated knit, worn print and brushed "
-                "metal's lights went 20-87 mm astray: docs/rti.md)"
+                "metal's lights went 20-87 mm astray: docs/rti-record.md)"
             )
         elif cfg.self_calibrate_positions:
             from matscan.reconstruct.lightpos import estimate_positions

@@ -10,7 +10,7 @@ Levenberg–Marquardt damping, as bundle adjustment fits cameras and points (Tri
 light). The misfit is weighted by the photos' noise, var = a·m + b (shot and read
 noise), with a and b read from the start's residuals (the median of the squared residual
 in bins of brightness): relative residuals, which the solver uses, weigh the dark pixels
-too much, and the positions came out 2 to 6 mm off (docs/rti.md). Where the model cannot
+too much, and the positions came out 2 to 6 mm off (docs/rti-record.md). Where the model cannot
 follow the photos the lights must not move to explain them: pixels the start misfits
 more than ``OUTLIER`` times the median pixel are left out, and the rest are weighed by
 Cauchy's loss (``ROBUST``). Without the two, a heavy weave and a corrugated sheet (flanks
@@ -28,7 +28,7 @@ at the rig file's places, which are not quite level (a leather's median slope �
 the fit then turns the whole dome to keep their tilt, and ``LEVEL_START`` lays them level
 first (their median slope removed, as the intensities' rounds lay theirs), or
 ``LEVEL_TURNS`` turns the fitted dome afterwards until the solver's maps at it lie level
-(:func:`_turned_level`; the former off, the latter on, docs/rti.md says why). Otherwise
+(:func:`_turned_level`; the former off, the latter on, docs/rti-record.md says why). Otherwise
 the steps keep the gradient the intensities came with, none. A pixel's step is kept only
 where it lowers that pixel's misfit, so a few pixels whose linearisation is poor (a
 highlight's edge) cannot reject the lights' step for all.
@@ -57,10 +57,10 @@ the replicas, 0.86 after 10), a black leather 0.66 (1.20; 1.22) and paper 0.57 (
 average (grass 2.0, gravel 1.4, paper 0.8) but a corrugated sheet lost 0.12 dB, and on a
 second draw of the dome a woven twill ended 0.35 dB farther below the ideal dome's
 relighting (its positions no better, its gains moved), each failing the rule set before
-the measurement (docs/rti.md); and it takes 90 steps where the default takes 10.
+the measurement (docs/rti-record.md); and it takes 90 steps where the default takes 10.
 Replicas rendered from maps the ``lm`` solver fitted at the fitted lights instead
 (tried first, with four times the noise variance, not kept) moved that black leather
-from 1.22 to 2.43 mm (docs/rti.md).
+from 1.22 to 2.43 mm (docs/rti-record.md).
 
 The bias can also be computed, at one Gauss–Newton step's cost (``SECOND_ORDER``; Box
 1971, "Bias in nonlinear estimation"): each pixel's numbers spread about their truth with
@@ -71,7 +71,7 @@ prior about the start, in the fit, so that both describe one estimator. On the f
 draw of bench/nearcal.py it brought paper, a leather, grass and gravel 0.8-1.8 dB nearer
 the ideal dome, but it put a heavy weave's bias at 39 mm (the model's kinks, where n·l
 crosses 0, are not curvature), and on the second draw paper and the leather lost 1.0 and
-0.6 dB: it failed the rule set before the run and is off (docs/rti.md).
+0.6 dB: it failed the rule set before the run and is off (docs/rti-record.md).
 
 Most of the bias is the dielectrics' F0, which each pixel fits from a faint, wide
 highlight: started at the truth of simulated grass, the fit drifted 1.23 mm, 0.28 mm with
@@ -86,7 +86,7 @@ roughness half way through the steps. Over three draws of bench/nearcal.py's dom
 brought a leather, grass and gravel within 0.5 dB of the ideal dome's relighting on each
 and paper on two, but drew the lights of glossy dielectrics (a varnish, a lacquer: sharp
 highlights) 2-9 mm away: it failed the rule set before
-the run and stayed off (docs/rti.md). A trace showed why: the shared F0 started at the
+the run and stayed off (docs/rti-record.md). A trace showed why: the shared F0 started at the
 mean of the start's, which read those F0 low (a lacquer's 0.001 for 0.04), and the steps
 moved the lights rather than the shared F0. It now starts where a scan of the photos puts
 it (``_F0_GRID``), is not shared where that is below any dielectric's (``SHARED_MIN``),
@@ -99,7 +99,7 @@ convention that the LEDs have no brightness gradient across the dome. Under the 
 convention (``selfcal.LEVEL``, the default since) and LEDs with their own gradients, its
 rule, written again before the runs, held on three draws: the mean relighting 0.16-0.27
 dB better, 1-4 more of the 25 within 0.5 dB of the ideal dome on each, no material more
-than 0.09 dB farther below its ideal on average (the foil print 0.03; docs/rti.md). So
+than 0.09 dB farther below its ideal on average (the foil print 0.03; docs/rti-record.md). So
 it is on by default, with ``SHARED_ITERATIONS`` steps; ``reconstruct --own-f0``
 (``ReconstructConfig.shared_f0`` False) fits each pixel's own F0, in ``ITERATIONS``
 steps, as before. The record gives the shared F0's standard error (``se``, from the
@@ -107,7 +107,7 @@ fit's own system: :func:`_f0_spread`), the spread the photos' noise alone leaves
 which replicas of a glossy plastic's photos confirm (tests; under the convention of no
 gradient). It does not measure the bias: a rough paper (roughness about 0.9, drawn at
 256²) has its F0 at 0.056 for a true 0.033 with an ``se`` of 0.0015 (a photographed
-brick's 0.0002-0.0003, a leather's 0.0001; docs/rti.md).
+brick's 0.0002-0.0003, a leather's 0.0001; docs/rti-record.md).
 
 The start decides where that paper ends: the ``lm`` solver's maps, fitted from flat maps,
 keep its roughness near the flat start (median 0.68 for 0.89), and from there the lights
@@ -118,7 +118,7 @@ where it fits best, by more than ``WEAK_MARGIN``. It failed its rule: a photogra
 grass's third end fitted 0.12% better and relit 3.3 dB worse, its F0 shared among fewer
 pixels (its own dielectric pixels), so with more unknowns. With the same unknowns
 (``WEAK_SAME``) it failed again: a heavy weave's third end fitted 0.32% better with its
-lights 1.2 mm farther off, 0.55 dB lower, where the paper's won by 0.02% (docs/rti.md).
+lights 1.2 mm farther off, 0.55 dB lower, where the paper's won by 0.02% (docs/rti-record.md).
 
 Measured on simulated dome24 captures whose LEDs are ±5 mm off (``bench/nearcal.py``,
 docs/rti.md): the Cramér–Rao bound of such photos puts the positions within about
@@ -159,7 +159,7 @@ ITERATIONS = 10
 #: mm error.
 #: Off (the solver's maps as they come): on the first draw of its rule's runs it brought
 #: that leather 0.51 dB nearer its ideal dome but sent a varnished wood's lights 7 mm off,
-#: and the mean relighting of 25 materials did not move (docs/rti.md).
+#: and the mean relighting of 25 materials did not move (docs/rti-record.md).
 LEVEL_START = False
 #: Under the level convention, after the joint fit, turn the fitted near lights about the
 #: sample's centre until the ``lm`` solver's maps at them lie level (as ``LEVEL_BY`` means
@@ -168,7 +168,7 @@ LEVEL_START = False
 #: convention, and the fit keeps the tilt of its start (``LEVEL_START``). Unlike laying
 #: the start level, the fit's path is not changed: on the leather of bench/nearcal.py's
 #: draw 0, turning the fitted lights so, three times, brought it 53.40 → 53.93 dB at 128²
-#: (ideal 54.44) and 46.33 → 47.70 at 256² (ideal 47.75) (docs/rti.md). Level by the
+#: (ideal 54.44) and 46.33 → 47.70 at 256² (ideal 47.75) (docs/rti-record.md). Level by the
 #: median alone (``LEVEL_BY``) failed its rule: on draw 1 the fitted materials' mean
 #: light error rose (1.090 → 1.094 mm: the embossed leather, coins and black leather,
 #: 1.5-1.7 → 2.1-2.5 mm; the first and last have a median normal not vertical when they
@@ -183,14 +183,14 @@ LEVEL_TURNS = 6
 #: median and their 10% trimmed mean agree on is none
 #: (:func:`matscan.reconstruct.selfcal.agreed_slope`): the median alone turned a heavy
 #: weave, an embossed leather and a black leather, whose median normal is not vertical
-#: when they lie level (docs/rti.md); "base", the default, the plane of the height
+#: when they lie level (docs/rti-record.md); "base", the default, the plane of the height
 #: integrated from them that only a tenth of it lies below is level
 #: (:func:`matscan.reconstruct.selfcal.base_slope`: the ground between a relief's
 #: features; on the 25 true maps of bench/nearcal.py within 0.0017 of level, where the
 #: agreed tilt is 0.0040 off a black leather's). Against "agreed" it passed its rule on
 #: draws 0-2 (mean relighting +0.006 to +0.018 dB, as many within 0.5 dB of the ideal
 #: dome, the lights' mean error 1-7% lower; the embossed coins, turned wrongly before,
-#: within 0.03 dB of their ideal; docs/rti.md).
+#: within 0.03 dB of their ideal; docs/rti-record.md).
 LEVEL_BY = "base"
 #: A turn smaller than this (degrees) is not made: the maps already lie level.
 LEVEL_TURN_MIN = 0.01
@@ -208,7 +208,7 @@ OUTLIER = 4.0
 #: ``calibrate --positions`` does): a wrong rig file, or a fit that went astray.
 MOVED_WARN_MM = 20.0
 #: Antithetic pairs of replicas whose fits measure the fit's bias (:func:`fit_positions`,
-#: module doc; 0: the bias is left in, the default, docs/rti.md says why; measured with
+#: module doc; 0: the bias is left in, the default, docs/rti-record.md says why; measured with
 #: each pixel's own F0 and ``ITERATIONS`` = 30, as ``bench/nearcal.py --own-f0 --steps=30
 #: --pairs=1`` sets them: the replicas refit each pixel's own F0; where the fit shares an
 #: F0 the replicas share it too, started at the fit's, their roughness searched as the
@@ -222,24 +222,24 @@ BIAS_PAIRS = 0
 #: shifts, and its gain changed as its distance changes the irradiance (1/d²). The dome's
 #: scale is a collective mode the photos hold weakly and relighting feels (a woven
 #: twill's fitted dome 0.62 mm too large, where the Cramér–Rao bound gives that mode 0.20
-#: mm; docs/rti.md), and one number carries less of the replicas' noise than 144. Off:
+#: mm; docs/rti-record.md), and one number carries less of the replicas' noise than 144. Off:
 #: it passed its rule on two draws of 25 materials (the twill 0.79 → 0.40 dB below its
 #: ideal dome) and failed it on the third, where the pair's steady radial bias took a
-#: paper and a leather 0.5 and 0.7 dB farther below their ideal (docs/rti.md).
+#: paper and a leather 0.5 and 0.7 dB farther below their ideal (docs/rti-record.md).
 BIAS_RADIAL = False
 #: Fit each replica of the pair from a second start too, each pixel's roughness searched
 #: at the shared F0's scan of the replica, and keep the end that fits it better, as the
 #: photos' fit keeps the better of its two starts. At the true maps it brings the pair's
 #: measure of a paper's scale bias to what its photos' fits show (−0.03 mm, against +0.34
 #: from one start); at the fit's end it changed little (+0.34 for +0.39) and failed its
-#: pilot (docs/rti.md, "The pair at the truth"). Off.
+#: pilot (docs/rti-record.md, "The pair at the truth"). Off.
 REPLICA_SEARCHED = False
 #: With ``BIAS_PAIRS``, measure the pair's bias again at each replica's end, that replica
 #: taken as the truth, and remove twice the first measure less the second (Hall & Martin
 #: 1988, "On bootstrap resampling and iteration"): the pair renders its replicas from the
 #: fit's maps, which carry each pixel's noise, and at them measures a bias the truth's maps
 #: do not have (a paper's scale +0.34 mm at its fitted maps, −0.03 at its true ones,
-#: docs/rti.md); the second measure, at maps noisier once more, tells how far that moves
+#: docs/rti-record.md); the second measure, at maps noisier once more, tells how far that moves
 #: it. Costs the pair's replicas twice more over.
 BIAS_ITERATED = False
 #: The seed of the first pair's noise (pair k draws with ``PAIR_SEED`` + k): the same for
@@ -247,7 +247,7 @@ BIAS_ITERATED = False
 PAIR_SEED = 0
 #: Remove the fit's bias by its second-order formula, each pixel's numbers then held near
 #: their start with the spread ``_SPREAD`` during the fit (:func:`fit_positions`, module
-#: doc; False: left in, the default, docs/rti.md says why; measured with each pixel's own
+#: doc; False: left in, the default, docs/rti-record.md says why; measured with each pixel's own
 #: F0 and ``ITERATIONS`` = 30, as ``bench/nearcal.py --own-f0 --steps=30 --second-order``
 #: sets them). ``BIAS_PAIRS`` above 0
 #: takes precedence.
@@ -260,7 +260,7 @@ SECOND_ORDER = False
 #: joint fit ended with the lights 1.88 mm off, 6.4 dB below the ideal dome. With 0.01 of
 #: every prior it came to 1.6 dB below (draw 2: 0.8), with 0.01 of the roughness prior
 #: alone to 0.45 dB (draw 2: 4.7); but a photographed brick then lost 6.0 and 3.1 dB.
-#: So 1 and 1, the solver's own, are the defaults (docs/rti.md).
+#: So 1 and 1, the solver's own, are the defaults (docs/rti-record.md).
 START_PRIOR = 1.0
 START_ROUGHNESS_PRIOR = 1.0
 #: A third start for the joint fit: the ``lm`` solver's maps fitted with every prior times
@@ -268,7 +268,7 @@ START_ROUGHNESS_PRIOR = 1.0
 #: model, and kept where its end fits the photos better (``fit_positions``' ``alternate``).
 #: Off: with 0.01 it failed its rule on draw 1 of bench/nearcal.py at 256², with its own
 #: unknowns and with the first start's (``WEAK_SAME``), and with ``ENDS_BY`` "nearest" on
-#: draw 1 at 128² (docs/rti.md).
+#: draw 1 at 128² (docs/rti-record.md).
 WEAK_START = 0.0
 #: The weak start's end is kept only where its misfit is lower than the others' best by more
 #: than this share of it: on draw 1 of bench/nearcal.py at 256² a photographed grass's
@@ -277,7 +277,7 @@ WEAK_MARGIN = 0.0
 #: The weak start's F0 is shared by the first start's pixels, started at its scan's value
 #: (True), so that all three ends fit the same unknowns; False: by the pixels its own maps
 #: call dielectric, at its own scan's value (on draw 1 at 256² the grass's and gravel's
-#: third ends then shared among 88% of the pixels, the others among all, docs/rti.md).
+#: third ends then shared among 88% of the pixels, the others among all, docs/rti-record.md).
 WEAK_SAME = True
 #: Which start's end the joint fit keeps: ``"misfit"``, the one that fits the photos best
 #: (the weak start's by more than ``WEAK_MARGIN``); ``"nearest"``, the one whose lights lie
@@ -286,7 +286,7 @@ WEAK_SAME = True
 #: depend on how far each LED is off, the ends' squared distances from it differ by what
 #: their squared errors differ. On eleven materials of draw 1 of bench/nearcal.py at 256²
 #: the nearest end was within 0.12 mm of the best, the best-fitting one up to 1.37 mm from
-#: it (docs/rti.md). An end that stopped short of where the photos put it would lie
+#: it (docs/rti-record.md). An end that stopped short of where the photos put it would lie
 #: nearer too, which the misfit would not prefer. With ``WEAK_START`` 0.01 it failed its
 #: rule on draw 1 at 128²: the mean PSNR 0.022 dB lower, a photographed brick 1.14 dB
 #: and a gravel 0.23 dB (its lights nearer the truth) lower, the woven twill 0.61 higher.
@@ -299,7 +299,7 @@ _ENDS_BY = ("misfit", "nearest")
 #: 1.30 mm. Off: on draw 1 of bench/nearcal.py (``--place-prior=2.9``) it moved the 25
 #: materials' relighting by 0.009 dB on average (a woven twill +0.16, a photographed brick
 #: −0.11), and from the rig file the knit's lights came to 4.6 mm, still relit below its
-#: places held (docs/rti.md, "what it is not").
+#: places held (docs/rti-record.md, "what it is not").
 PLACE_SPREAD_MM = 0.0
 _PRIORS = ("prior_diffuse", "prior_specular", "prior_roughness", "prior_normal")
 #: With ``SECOND_ORDER``, each pixel's numbers spread at most as if uniform over their
@@ -309,11 +309,11 @@ _PRIORS = ("prior_diffuse", "prior_specular", "prior_roughness", "prior_normal")
 #: (a faint, wide highlight's F0 and roughness), the formula would otherwise spread it
 #: without bound (paper's bias came out at 30 mm), and the fit would leave it where its
 #: start put it, so that the formula, taken at the fit's end, described another fit than
-#: the one made (docs/rti.md).
+#: the one made (docs/rti-record.md).
 _SPREAD = torch.tensor([0.29] * 6 + [0.28, 1.0, 1.0], dtype=F64)
 #: One F0 (RGB) shared by every pixel whose start gives a dielectric's (each channel below
 #: ``SHARED_BELOW``), fitted with the lights, instead of each pixel's own (module doc;
-#: the default since its rule held under the level convention, docs/rti.md; False: each
+#: the default since its rule held under the level convention, docs/rti-record.md; False: each
 #: pixel its own, as ``reconstruct --own-f0`` and ``bench/nearcal.py --own-f0`` ask).
 #: Each pixel's roughness is then searched again over a grid half way through the steps
 #: and twice more, three steps apart (``_RESEED_GRID``).
@@ -322,18 +322,18 @@ SHARED_F0 = True
 #: a dielectric's F0 follows from its refractive index, which hardly changes across the
 #: visible. Fitted per channel, a varnished wood's came out (0.042, 0.057, 0.093) for a
 #: grey 0.0465 when the fit started from levelled maps (``LEVEL_START``), its lights 7 mm
-#: off (docs/rti.md). Off: with the level start it failed its rule's pilot, the wood's
-#: lights 7.2 mm off with its F0 grey (docs/rti.md); alone it was not run under a rule.
+#: off (docs/rti-record.md). Off: with the level start it failed its rule's pilot, the wood's
+#: lights 7.2 mm off with its F0 grey (docs/rti-record.md); alone it was not run under a rule.
 GREY_F0 = False
 #: The shared F0 (``SHARED_F0``) held at the scan's value (``_F0_GRID``) through the steps,
 #: not fitted with the lights. A diagnostic (``bench/nearcal.py --hold-f0``): on the
 #: bench's paper at 256², a rough dielectric (roughness about 0.9) whose fitted F0 drifts
 #: from the scan's 0.04 to 0.056 (true 0.033; as far with every pixel, further from the
-#: truth), held it relit 2.5 dB better, still 1.7 dB below the intensities alone (docs/rti.md).
+#: truth), held it relit 2.5 dB better, still 1.7 dB below the intensities alone (docs/rti-record.md).
 HOLD_F0 = False
 #: Gauss–Newton steps of the fit with one shared F0, from each of its two starts, as
 #: :func:`estimate_positions` runs it (``ITERATIONS`` with each pixel's own F0): measured
-#: with 20 (docs/rti.md).
+#: with 20 (docs/rti-record.md).
 SHARED_ITERATIONS = 20
 #: The start's F0 below which a pixel shares the one F0 (``SHARED_F0``): dielectrics are
 #: about 0.02-0.08; a metal's or a foil's pixels keep their own.
@@ -346,7 +346,7 @@ _RESEED_GRID = torch.linspace(0.05, 1.0, 20, dtype=F64)
 #: The shared F0's values tried before the steps (``SHARED_F0``), each pixel's roughness
 #: searched again at each (``_RESEED_GRID``): the start's own F0 can be far from the
 #: material's (a woven twill's 0.015 for a true 0.029, a varnish's 0.020 for 0.047), and
-#: from there the steps drew the lights away rather than move the shared F0 (docs/rti.md).
+#: from there the steps drew the lights away rather than move the shared F0 (docs/rti-record.md).
 _F0_GRID = torch.tensor([0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03, 0.035, 0.04, 0.05, 0.06, 0.08], dtype=F64)
 #: A dielectric's F0 is at least water's (n = 1.33: 0.02). Where the pixels kept fit best
 #: with a lower shared F0 they show no dielectric's highlight (a lacquer's sharp ones are
@@ -637,7 +637,7 @@ _AWAY = 0.1
 #: of bench/nearcal.py's draw 1, 7 of 16,384 pixels held the joint fit's end in another
 #: valley of the roughness (0.27 for a true 0.57), 120 above the misfit the true maps'
 #: valleys give, and the grid could not move them: there the misfit is 92 at 0.55 with
-#: the normal kept, 63 with it fitted (docs/rti.md).
+#: the normal kept, 63 with it fitted (docs/rti-record.md).
 POLISH = 0
 #: A pixel's other valley (``POLISH``) is kept only where it lowers the pixel's misfit by
 #: more than this (in units of the noise's variance, as the misfit counts).
@@ -844,7 +844,7 @@ def _f0_spread(s: Tensor, basis: Tensor, n: int, extra: int, level: bool) -> Ten
     multipliers, whose constraint the inverse of the bordered system keeps), with the
     gains' overall RGB factor held (the albedo and the shared F0 would take it): how far
     noise alone moves it with the lights, gains and every pixel's numbers free. Only the
-    noise's part of its error: a bias does not show in it (docs/rti.md)."""
+    noise's part of its error: a bias does not show in it (docs/rti-record.md)."""
     overall = torch.zeros(basis.shape[0], 3, dtype=F64)
     for c in range(3):
         overall[3 * n + c : 6 * n : 3, c] = 1
@@ -1057,7 +1057,7 @@ def fit_positions(
     if shared and first.shared is not None and bool(first.shared.any()):
         # once more with every pixel's roughness searched at the shared F0's start: the end that
         # fits the photos better is kept (``_F0_GRID``; the start's roughness suits rough
-        # materials, the searched one glossy ones, docs/rti.md)
+        # materials, the searched one glossy ones, docs/rti-record.md)
         later = None if progress is None else (lambda i: progress(iterations + i))
         lg0 = gains.to(F64).log()
         solved["searched"] = _solve(
@@ -1228,10 +1228,10 @@ def estimate_held_gains(
     record. Placed from the photos too, the lights of such materials (a black knit, a worn
     print, a brushed metal) went 20-87 mm astray, and 2.4-52 mm started at the truth: the
     knit's misfit hardly tells those places apart, the metal's prefers them, and the worn
-    print's steps leave its truth (docs/rti.md, "their misfit, profiled"); held, their
+    print's steps leave its truth (docs/rti-record.md, "their misfit, profiled"); held, their
     gains came 3-7% off (RMS) against ±20% at the rig file's, and over six draws of the
     three they relit 1.31 → 0.63 dB below the ideal dome on average, 3 → 9 of 18 within
-    0.5 dB, worse on 3 (docs/rti.md, "The unread intensities").
+    0.5 dB, worse on 3 (docs/rti-record.md, "The unread intensities").
     Pixels as :func:`estimate_positions` takes them (``POSITION_SIDE``); ``level`` as
     there."""
     from matscan.reconstruct.job import SELF_CALIBRATION_OFF, reconstruct_capture

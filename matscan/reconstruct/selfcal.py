@@ -34,7 +34,7 @@ the albedo absorbs), as semi-calibrated photometric stereo shows. So, alternatel
    gradient (a slope of their log brightness of 0.057 in the median), under which the
    convention of no gradient placed bench/nearcal.py's lights 2.6-8.5 mm off (the level
    one 0.5-2.9 mm) and relit 0.8-2.0 dB worse on average over its 25 materials; without
-   a gradient the two relight alike (docs/rti.md). But a sample that does not lie level
+   a gradient the two relight alike (docs/rti-record.md). But a sample that does not lie level
    breaks the level convention: tilted 5°, its gains pass the check below 10% off (RMS;
    3% without a gradient), and on a handheld light's RTI capture, whose frame need not
    be the sample's, they are refused (rti-icon leans 9.5° in its ``.lp`` frame). So
@@ -123,13 +123,13 @@ ROUND_SIDE = 128
 #: True, the sample lies level (its median slope none, :func:`levelled`) and the gains
 #: keep the gradient the photos show; False, the gains have none (:func:`without_tilt`).
 #: True since it passed its rule on three draws of bench/nearcal.py's dome, with the
-#: LEDs' own gradients and without (docs/rti.md).
+#: LEDs' own gradients and without (docs/rti-record.md).
 LEVEL = True
 #: Where the level convention's gains are kept but refused (they re-render the photos no
 #: better than the capture's own intensities) and ``led_gradient`` is "auto" or "choose",
 #: the gains under the convention of no gradient (run for the choice, or once more where
 #: ``CHOOSE`` is off) are kept if they pass the same check (the record's ``fallback``). A
-#: capture whose frame is not the sample's (a handheld light's, docs/rti.md) breaks the
+#: capture whose frame is not the sample's (a handheld light's, docs/rti-record.md) breaks the
 #: level convention, not the other.
 FALLBACK = True
 #: ``led_gradient`` "choose" keeps the estimate without a gradient if its fit re-renders
@@ -141,13 +141,13 @@ FALLBACK = True
 #: tilted 5° where the estimate without a gradient re-rendered better it did so by 1.1% or
 #: more; on the 30 of 150 level ones where it did, by 0-25%, 18 of them by under 1% (chosen
 #: there; on draws 3 and 4, level, 3 of 100 estimates kept the other convention, which
-#: relit them within ±0.15 dB: docs/rti.md).
+#: relit them within ±0.15 dB: docs/rti-record.md).
 CHOOSE_MARGIN = 0.01
 #: Where ``led_gradient`` is "auto" and the level convention applies (:func:`fits_gradient`),
 #: both conventions run, as under "choose" (at twice the time): the level convention's
 #: gains pass the refusal check 10% off on a sample tilted 5°, and the other's relit such
 #: samples 0.4-22 dB better. True since its third rule held on draws 3 and 4 of
-#: bench/nearcal.py's dome, not used to set ``CHOOSE_MARGIN`` (docs/rti.md).
+#: bench/nearcal.py's dome, not used to set ``CHOOSE_MARGIN`` (docs/rti-record.md).
 CHOOSE = True
 #: Where the two estimates re-render the photos within ``CHOOSE_MARGIN`` of each other
 #: either way (a tie), the one without a gradient is kept if the level estimate's gains
@@ -155,7 +155,7 @@ CHOOSE = True
 #: the LEDs' own. On draws 0, 1 and 4 of bench/nearcal.py's dome the level gains'
 #: gradient was 0.080-0.277 on samples tilted 5° and 0.005-0.142 on level ones, whose
 #: LEDs' true gradients reach 0.121; the ties the margin handed to the level convention on
-#: tilted samples were at 0.22-0.28 but one (docs/rti.md). Set by its fourth rule, which
+#: tilted samples were at 0.22-0.28 but one (docs/rti-record.md). Set by its fourth rule, which
 #: held on draws 5 and 6 (not used to choose it): tilted 5°, it changed one material of
 #: 50, +0.40 dB; level, with the LEDs' gradients and without, none of 100. None: off.
 TIE_GRADIENT: float | None = 0.15

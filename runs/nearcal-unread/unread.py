@@ -1,4 +1,4 @@
-"""Why the joint fit misplaces the lights of the unread materials: the experiments of docs/rti.md's
+"""Why the joint fit misplaces the lights of the unread materials: the experiments of docs/rti-record.md's
 "The unread three's bias: what it is not" (run from the repository's root, at the commit that
 added this file, whose lightpos.py has the flags ADJUSTED, CENSORED and PLACE_SPREAD_MM).
 
