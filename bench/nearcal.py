@@ -20,7 +20,7 @@ PSNR (dB, sRGB) of fits with the true dome ("ideal"), the rig file ("nominal"), 
 self-calibrated intensities ("gains") and the estimated positions too ("+positions").
 ``--matte`` zeroes the materials' specular maps first: there the positions of three of
 the four come back within 2 mm (the leather's relief leaves too few usable pixels); with
-the materials' own specular they do not (docs/rti.md gives the numbers).
+the materials' own specular they do not (docs/rti-record.md gives the numbers).
 
 ``--prior=K`` adds K × Σ (offset / 5 mm)² to the (scaled) misfit, a pull toward the rig
 file's places; ``--only=NAME[,NAME...]`` runs the materials whose names start so.
@@ -46,7 +46,9 @@ dome's scale (``lightpos.BIAS_RADIAL``); ``--pair-seed=K`` draws the pairs' nois
 another seed (``lightpos.PAIR_SEED``); ``--replica-searched`` fits each replica from
 a second, searched start too (``lightpos.REPLICA_SEARCHED``); ``--pairs-iterated`` measures
 the pair's bias again at each replica's end and removes twice the first less the second
-(``lightpos.BIAS_ITERATED``). ``--parts`` prints under each material what
+(``lightpos.BIAS_ITERATED``); ``--replica-fence=K`` renders the replicas with the
+roughness beyond K interquartile ranges outside its quartiles set to the median
+(``lightpos.REPLICA_FENCE``). ``--parts`` prints under each material what
 each part of the fitted lights' error costs: the maps fitted at the true places moved by
 that part alone (radial, along each light's direction from the sample's centre;
 tangential; the mean shift; the mean radial shift, signed, + where the fitted dome is
@@ -65,7 +67,7 @@ other), a gradient the self-calibration takes as none (a tilted sample looks ali
 ``--drawn-gradient`` keeps the gradient each draw of ±20% LEDs has (median 0.057),
 which the bench's draws otherwise remove. ``--level`` and ``--no-level`` set the
 self-calibration's convention (``selfcal.LEVEL``): the sample level and the gradient in
-the gains (the default since it passed its rule, docs/rti.md), or no gradient (the
+the gains (the default since it passed its rule, docs/rti-record.md), or no gradient (the
 convention every table before that rule was made under).
 ``--record`` prints under each fitted material the joint fit's record (``matscan.json``'s
 ``positions``): the pixels used, the misfit at its start and end, and the shared F0; then
@@ -119,6 +121,12 @@ roughness, not the scan's), the true
 places and the true gains (128², where the joint fit uses every pixel), each fitted as the
 photos are: the shift of the lights' mean radial place (mm, + outward) and the mean of
 each light's shift, beside which the pair at the fit's end (the record's ``radial_mm``) can be read.
+``--hybrid-pair=maps`` (with ``--joint --pairs=1 --pairs-radial``) measures the pair at the
+fit's end with the fit's maps replaced by the true ones, ``--hybrid-pair=lights`` with its
+lights' places replaced by the true ones (``--hybrid-pair=maps:roughness``, ``:normal``,
+``:diffuse`` or ``:f0``: that part of the maps alone), and prints that pair's mean radial
+shift; ``--hybrid-pair=stats`` prints instead the quantiles of the fit's roughness and the
+true one at the fit's pixels, and removes nothing.
 
 ``--from-truth`` starts the joint fit (``fit_positions``, its bias left in, 30 steps; with
 ``--own-f0`` as every run of it before the shared F0 became the default) at
@@ -189,7 +197,7 @@ steps whenever the roughness is searched again, kept where it fits better
 ``--validate-choice`` prints under each fitted material the re-rendering error of 6 photos
 left out (``reconstruct --validate 6``) with the fitted lights and with the rig file's
 places and the intensities alone: whether the photos could tell which relights better (on
-the paper at 256² they could not, docs/rti.md). The fitted near lights are turned about
+the paper at 256² they could not, docs/rti-record.md). The fitted near lights are turned about
 the sample's centre until the solver's maps at them lie level, at most K times
 (``lightpos.LEVEL_TURNS``, 6 by default; ``--level-turns=K`` sets it, 0 turns nothing),
 under the level convention only (where ``auto`` keeps the estimate without a gradient,
@@ -204,17 +212,18 @@ trimmed mean, the two's agreement (``selfcal.agreed_slope``) and the base plane
 
 ``--outlier=K`` and ``--robust=C`` set ``lightpos.OUTLIER`` and ``ROBUST``. ``--seed=S``
 draws another dome for each material (the LEDs' offsets and brightnesses and the camera's
-noise; the materials stay the same); 0, the default, is the draw of the tables in docs/rti.md.
+noise; the materials stay the same); 0, the default, is the draw of the tables in docs/rti-record.md.
 ``--held-out`` runs bench/selfcal.py's 13 held-out materials instead of the four, and
 ``--others`` the 8 of its 12 that are not among the four.
 
 Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--full|--matte] [--prior=K]
-[--pairs=K] [--pairs-radial] [--pairs-iterated] [--pair-seed=K] [--replica-searched] [--parts]
+[--pairs=K] [--pairs-radial] [--pairs-iterated] [--replica-fence=K] [--pair-seed=K] [--replica-searched] [--parts]
 [--second-order] [--shared-f0|--own-f0] [--split] [--record] [--gradient=A] [--drawn-gradient]
 [--[no-]level] [--level-start] [--level-turns=K] [--level-by=A,B] [--grey-f0] [--hold-f0] [--no-fallback] [--gains-only]
 [--tilt=DEG] [--levels] [--choose] [--versus-choose]
 [--versus-tie=G] [--slopes] [--steps=N] [--side=N] [--seed=S]
-[--oracle-pair] [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed] [--pin-roughness] [--f0-grid=V,...]
+[--oracle-pair] [--hybrid-pair=maps[:PART]|lights|stats] [--from-truth[=S|shot|steps]] [--reduced] [--no-reseed]
+[--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
 [--variants] [--validate-choice] [--held-gains] [--profile] [--held-out|--others] [--only=NAMES]
@@ -656,6 +665,48 @@ def oracle_pair(cap: Capture, maps: MapSet, gains: torch.Tensor, size: int) -> s
 
 
 @contextlib.contextmanager
+def hybrid_pair(kind: str, name: str, maps: MapSet, true: LightSet, gains: torch.Tensor):
+    """``--hybrid-pair=maps|lights``: within it, the pair (``--pairs=1``) that measures the
+    joint fit's bias renders its replicas from the fit's end with either its maps replaced
+    by the true ones (scaled by the fitted gains' overall factor per channel, which the
+    rendering multiplies) or its lights' places replaced by the true ones, and prints the
+    radial bias it measures: which of the two sets the pair's measure at the fitted end
+    apart from its measure at the truth (docs/rti-record.md)."""
+    rows = {"diffuse": slice(0, 3), "f0": slice(3, 6), "roughness": slice(6, 7), "normal": slice(7, 9)}
+    kind, _, part = kind.partition(":")  # maps:PART: that part of the maps alone the true one
+    if kind not in ("maps", "lights", "stats") or (part and (kind != "maps" or part not in rows)):
+        raise SystemExit(f"--hybrid-pair: maps[:{'|'.join(rows)}], lights or stats, not {kind!r}")
+    debiased = lightpos._debiased
+
+    def swapped(photos, fit, pairs, iterations, progress=None):
+        if kind == "stats":  # the fitted and true roughness's quantiles, and no pair
+            q = torch.tensor([0.05, 0.25, 0.5, 0.75, 0.95], dtype=torch.float64)
+            for label, r in (("fitted", fit.th[6]), ("true", lightpos._numbers(maps)[6, fit.used])):
+                at = " ".join(f"{float(v):.3f}" for v in torch.quantile(r, q))
+                print(f"{name:16s} {label} roughness at 5/25/50/75/95%: {at}", flush=True)
+            return fit.pos, fit.lg, {"pairs": 0}
+        if kind == "maps":
+            th = lightpos._numbers(maps)[:, fit.used]
+            c = (fit.lg - gains.to(torch.float64).log()).mean(0).exp()  # the fitted gains' overall factor (3,)
+            th[0:6] = th[0:6] / torch.cat([c, c])[:, None]
+            if part:
+                th = torch.cat([th[v] if k == part else fit.th[v] for k, v in rows.items()])
+            fit = replace(fit, th=th)
+        else:
+            fit = replace(fit, pos=torch.where(photos.near[:, None], true.position.to(torch.float64), fit.pos))
+        pos, lg, record = debiased(photos, fit, pairs, iterations, progress)
+        radial = record.get("radial_mm", 0.0)
+        print(f"{name:16s} the pair with the true {part or kind}: radial {radial:+.3f} mm", flush=True)
+        return pos, lg, record
+
+    lightpos._debiased = swapped
+    try:
+        yield
+    finally:
+        lightpos._debiased = debiased
+
+
+@contextlib.contextmanager
 def true_start(maps: MapSet, size: int):
     """``--true-start``: within it, ``estimate_positions`` starts the joint fit from the true
     maps at the pixels it fits (every ⌈size / ``POSITION_SIDE``⌉-th, as ``selfcal.reduced``
@@ -822,6 +873,8 @@ def main() -> None:
             lightpos.BIAS_RADIAL = True
         if a == "--replica-searched":  # each replica also fitted from a searched start (REPLICA_SEARCHED)
             lightpos.REPLICA_SEARCHED = True
+        if a.startswith("--replica-fence="):  # the replicas' roughness outliers set to the median (REPLICA_FENCE)
+            lightpos.REPLICA_FENCE = float(a.split("=", 1)[1])
         if a == "--pairs-iterated":  # the pair's bias measured again at its replicas' ends (BIAS_ITERATED)
             lightpos.BIAS_ITERATED = True
         if a.startswith("--pair-seed="):  # the seed of the pairs' noise (lightpos.PAIR_SEED)
@@ -875,6 +928,7 @@ def main() -> None:
     matte = "--matte" in sys.argv
     draw = next((1000 * int(a.split("=", 1)[1]) for a in sys.argv[1:] if a.startswith("--seed=")), 0)
     only = [n for a in sys.argv[1:] if a.startswith("--only=") for n in a.split("=", 1)[1].split(",")]
+    hybrid = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--hybrid-pair=")), None)
     size = int(args[0]) if args else 128
     materials = [("paper", generate("paper", size, 1)), ("brick (photo)", photo_material("brick", size))]
     materials += [("leather", generate("leather", size, 1)), ("plastic", generate("plastic", size, 1))]
@@ -1064,6 +1118,9 @@ def main() -> None:
             level = record["convention"] == "level sample"
             if "--true-start" in sys.argv:  # a diagnostic: the joint fit started from the true maps
                 with true_start(maps, size):
+                    lights, g2, fitted, unturned = positions_and_unturned(cap, g1, cfg, level)
+            elif hybrid:  # a diagnostic: the pair at the fit's end with its maps or places the true ones
+                with hybrid_pair(hybrid, name, maps, true, gains):
                     lights, g2, fitted, unturned = positions_and_unturned(cap, g1, cfg, level)
             else:
                 lights, g2, fitted, unturned = positions_and_unturned(cap, g1, cfg, level)
