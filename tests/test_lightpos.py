@@ -8,6 +8,7 @@ import math
 import shutil
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 from torch import Tensor
@@ -468,6 +469,51 @@ def test_the_iterated_pair_removes_twice_the_first_bias_less_the_second(drifted,
     assert record["bias"]["first_radial_mm"] == pytest.approx(float((s1 * out).sum(1).mean()), abs=1e-3)
     assert record["bias"]["second_radial_mm"] == pytest.approx(float((s2 * out).sum(1).mean()), abs=1e-3)
     assert record["bias"]["removed_mm"]["mean"] == pytest.approx(float((2 * s1 - s2).norm(dim=1).mean()), abs=1e-3)
+
+
+def _tukey_reference(r: np.ndarray, k: float) -> np.ndarray:
+    """NumPy's quartiles (linear interpolation, as torch.quantile) and Tukey's fences."""
+    q1, mid, q3 = np.percentile(r, [25, 50, 75])
+    out = (r < q1 - k * (q3 - q1)) | (r > q3 + k * (q3 - q1))
+    return np.where(out, mid, r)
+
+
+def test_the_fence_sets_roughness_outliers_to_the_median():
+    """``_fenced`` sets every roughness beyond Tukey's fences to the median and leaves every
+    other number of every pixel alone (checked against NumPy's quartiles)."""
+    g = torch.Generator().manual_seed(3)
+    th = torch.rand(9, 400, generator=g, dtype=torch.float64)
+    th[6] = 0.75 + 0.03 * torch.randn(400, generator=g, dtype=torch.float64)
+    th[6, :25] = 0.09  # a low valley, as a paper's fit leaves it
+    th[6, 25] = 1.0
+    out = lightpos._fenced(th, 3.0)
+    want = _tukey_reference(th[6].numpy(), 3.0)
+    assert np.allclose(out[6].numpy(), want) and bool((out[6, :26] != th[6, :26]).all())
+    assert int((out[6] != th[6]).sum()) == 26 and torch.equal(out[torch.arange(9) != 6], th[torch.arange(9) != 6])
+    assert torch.equal(lightpos._fenced(out, 3.0)[6][26:], out[6][26:])
+
+
+def test_the_replicas_are_rendered_from_the_fenced_maps(drifted, monkeypatch):
+    """With ``REPLICA_FENCE`` the pair's replicas start from, and are rendered from, the
+    kept end's maps with the roughness outliers set to the median."""
+    cap, maps, gains, _, _ = drifted
+    calls, solve = [], lightpos._solve
+
+    def spy(photos, th, lg, iterations, progress=None, **kw):
+        calls.append((photos, th.clone(), solve(photos, th, lg, iterations, progress, **kw)))
+        return calls[-1][2]
+
+    monkeypatch.setattr(lightpos, "REPLICA_FENCE", 1.0)
+    monkeypatch.setattr(lightpos, "_solve", spy)
+    fit_positions(cap, maps, gains, iterations=4, bias_pairs=1, shared_f0=False, level=False)
+    assert len(calls) == 3
+    fit = calls[0][2]
+    want = _tukey_reference(fit.th[6].numpy(), 1.0)
+    assert (want != fit.th[6].numpy()).any()  # the grass's fit has roughness beyond k = 1
+    (one, th1, _), (two, th2, _) = calls[1:]
+    assert np.allclose(th1[6].numpy(), want) and torch.equal(th1, th2)
+    geo = lightpos._placed(replace(one.lights, position=fit.pos), one.aims, fit.pos, fit.lg.exp())
+    assert torch.allclose((one.y + two.y) / 2, lightpos._render(th1, geo, one.pts), atol=1e-9)
 
 
 def test_the_second_order_formula_measures_the_bias(drifted):
