@@ -821,7 +821,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_const",
         const=False,
         help="--self-calibrate-positions with each pixel's own F0 in that fit, as before the shared one became its "
-        "default: a third of the time at 512² (29 s against 92 s on 2 cores), relit worse on most simulated "
+        "default: a third of the time at 512² (32 s against 105 s on 2 cores), relit worse on most simulated "
         "materials (docs/rti-record.md)",
     )
     p.add_argument(
