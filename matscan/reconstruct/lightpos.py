@@ -240,7 +240,10 @@ REPLICA_SEARCHED = False
 #: fit's maps, which carry each pixel's noise, and at them measures a bias the truth's maps
 #: do not have (a paper's scale +0.34 mm at its fitted maps, −0.03 at its true ones,
 #: docs/rti-record.md); the second measure, at maps noisier once more, tells how far that moves
-#: it. Costs the pair's replicas twice more over.
+#: it. Costs the pair's replicas twice more over. Off: on draw 0's paper the second measure
+#: was +0.330 mm for the first's +0.341, so the maps' noise is not what moves it (their
+#: roughness's low valley is: ``REPLICA_FENCE``), and its pilot failed (docs/rti-record.md,
+#: "The pair measured again at its replicas' ends").
 BIAS_ITERATED = False
 #: With ``BIAS_PAIRS``, render the pair's replicas (and start their fits) from the fit's
 #: maps with each pixel's roughness beyond Tukey's fences, this many interquartile ranges
@@ -248,7 +251,10 @@ BIAS_ITERATED = False
 #: its pixels in another valley of their roughness (0.09 where the truth is 0.72 or more,
 #: a narrow highlight that falls between the lights), and with those the pair measures
 #: its scale's bias at +0.35 mm, with the true roughness alone +0.02, as at the truth
-#: (docs/rti-record.md, "What in the fitted maps moves the pair").
+#: (docs/rti-record.md, "What in the fitted maps moves the pair"). Off: with 3 (and
+#: ``BIAS_RADIAL``, ``REPLICA_SEARCHED``) the paper's pair measured +0.03 and relit it as
+#: the default does, the twill came within 0.5 dB of its ideal dome, but a leather, whose
+#: fitted roughness is its true one, lost 0.7 dB as before: its pilot failed.
 REPLICA_FENCE = 0.0
 #: The seed of the first pair's noise (pair k draws with ``PAIR_SEED`` + k): the same for
 #: every capture, so that a fit is repeatable.
