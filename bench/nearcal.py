@@ -842,6 +842,35 @@ def radial_bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera:
     return float(v @ torch.linalg.pinv(s, hermitian=True, rtol=1e-12) @ v) ** 0.5
 
 
+def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, other, seed: int) -> None:
+    """The dome self-calibrated (``--self-calibrate-positions``, its defaults) on the photos
+    of another material ``other`` (name, maps) under the same LEDs, with its own noise, and
+    this material's photos fitted with the lights and gains it found: what a later capture
+    naming that capture's ``self_calibration.json`` (``reconstruct --calibration``) is
+    fitted with. Prints that calibration's position error, this material's novel-light
+    PSNR with the ideal dome and with the calibration, how far below the ideal that is,
+    and the calibration's record (read or not, the convention, the turns, its misfit)."""
+    lit = true.with_intensity(true.intensity * gains)
+    photos = simulate_images(other[1], lit, rig.field_mm, CameraModel(read_noise=0.002), seed=seed)
+    saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
+    on = replace(cap, images=photos, saturated=saturated)
+    g1, record = estimate_gains(on, cfg)
+    lights, g2, fitted = cap.lights, g1, {}
+    if record["updated"]:
+        lights, g2, fitted, _ = estimate_positions(on, g1, cfg, level=record["convention"] == "level sample")
+    ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
+    reused = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
+    err = (lights.position - true.position).norm(dim=1)
+    psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in (ideal, reused)]
+    turns = len([t for t in fitted.get("level_turns", []) if t.get("made")])
+    print(
+        f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}   {psnr[0]:7.2f} {psnr[1]:7.2f} "
+        f"{psnr[0] - psnr[1]:7.2f}   read {record['updated']}, {record['convention']}, {turns} turns, "
+        f"misfit {fitted.get('misfit_per_value', {}).get('end')}",
+        flush=True,
+    )
+
+
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
     err = (pos - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in fits]
@@ -932,6 +961,7 @@ def main() -> None:
     size = int(args[0]) if args else 128
     materials = [("paper", generate("paper", size, 1)), ("brick (photo)", photo_material("brick", size))]
     materials += [("leather", generate("leather", size, 1)), ("plastic", generate("plastic", size, 1))]
+    main_four = materials
     if "--held-out" in sys.argv:  # bench/selfcal.py's 13 (lightpos.OUTLIER and ROBUST came after two failed)
         families = ("woven_twill", "woven_satin", "leather_embossed", "weave_heavy", "corrugated")
         families += ("metallic_print", "worn", "varnished_wood", "dark_glossy", "glossy_coat")
@@ -942,6 +972,10 @@ def main() -> None:
         materials = [(f, generate(f, size, 1)) for f in ("woven_plain", "knit", "painted", "metal_brushed")]
         materials += [("gravel (photo)", photo_material("gravel", size))]
         materials += [(f"{n} (artist)", artist_material(n, size)) for n in ("foil-print", "black-leather", "lacquer")]
+    named = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--calibrated-on=")), None)
+    on = next(((n, m) for n, m in main_four if n.startswith(named)), None) if named else None
+    if named and on is None:
+        raise SystemExit(f"--calibrated-on={named}: not one of paper, brick, leather, plastic")
     cfg = ReconstructConfig(model="none", refine="on", solver="lm")
     if "--choose" in sys.argv:  # both conventions, the better re-rendering kept (led_gradient "choose")
         cfg = replace(cfg, self_calibrate=True, led_gradient="choose")
@@ -986,6 +1020,11 @@ def main() -> None:
         )
     elif at is not None:
         print(f"{'material':16s}  ideal    mean   worst  within 0.5 dB   mm   bound (dB; lights drawn at the bound)")
+    elif on is not None:
+        print(
+            f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal {on[0]}'s  below   "
+            f"(mm, dB; the dome self-calibrated on {on[0]}'s photos, reused)"
+        )
     else:
         print(f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal nominal  gains +positions (dB)")
     for i, (name, maps) in enumerate(materials):
@@ -1047,6 +1086,9 @@ def main() -> None:
             print(f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}" + radial + f0, flush=True)
             continue
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
+        if on is not None:  # the dome calibrated on another material's photos under the same LEDs
+            calibrated_on(name, cap, cfg, maps, true, gains, rig, on, seed=700 + i + draw)
+            continue
         if at is not None:  # what an estimator at the bound would relight at
             at_bound(name, cap, cfg, maps, true, gains, rig, at, seed=300 + i + draw)
             continue
