@@ -114,6 +114,14 @@ model, which its starts share; the first fit's is the profiles').
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
 
+``--calibrated-on=NAME`` (with ``--joint``; NAME one of the four: paper, brick, leather,
+plastic) calibrates each material's dome on NAME's photos under the same LEDs instead
+(their own camera noise; ``--self-calibrate-positions`` as it ships), and fits the
+material's photos with the lights and gains found there, as ``reconstruct --calibration``
+fits a later capture with an earlier one's ``self_calibration.json``: it prints that
+calibration's position error, the ideal dome's novel-light PSNR and the calibration's,
+and the difference (docs/rti.md, "A dome calibrated once").
+
 ``--oracle-pair`` prints instead the antithetic pair's bias (as ``--pairs=1 --pairs-radial``
 measures it at the fit's end) measured at the truth: the replicas rendered from the true
 maps (their dielectric pixels' F0 the shared F0's scan, as the fit shares it; their own
@@ -226,7 +234,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
-[--variants] [--validate-choice] [--held-gains] [--profile] [--held-out|--others] [--only=NAMES]
+[--variants] [--validate-choice] [--held-gains] [--profile] [--calibrated-on=NAME] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
 

@@ -168,7 +168,10 @@ def json_safe(obj: Any) -> Any:
 def _as_now(settings: Any) -> Any:
     """A manifest's settings as this version writes the same ones: before ``shared_f0``
     could be None (follow ``lightpos.SHARED_F0``) a batch without the positions' fit wrote
-    False, the same settings (with the fit, False was each pixel's own F0: ``--own-f0``)."""
+    False, the same settings (with the fit, False was each pixel's own F0: ``--own-f0``);
+    before ``calibration`` there was none to name."""
+    if isinstance(settings, dict) and "calibration" not in settings:  # before --calibration: none
+        settings = {**settings, "calibration": None}
     if not isinstance(settings, dict) or settings.get("self_calibrate_positions"):
         return settings
     if settings.get("shared_f0") is False:

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from matscan import __version__
-from matscan.errors import MatscanError
+from matscan.errors import MatscanError, input_error
 
 #: ``--led-gradient``'s choices (matscan.reconstruct.job.LED_GRADIENTS, not imported here:
 #: it would import torch for --help)
@@ -161,6 +161,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         self_calibrate_positions=args.self_calibrate_positions or args.shared_f0 is not None,
         shared_f0=args.shared_f0,
         led_gradient=args.led_gradient,
+        calibration=_calibration_arg(args.calibration),
     )
     rec = reconstruct(
         _capture_arg(args.capture),
@@ -181,6 +182,17 @@ def cmd_reconstruct(args: argparse.Namespace) -> str:
         + (_validation_summary(rec["validation"]) if "validation" in rec else "")
         + f"; {rec['timings_s']['total_s']:.1f} s"
     )
+
+
+def _calibration_arg(file: str | None) -> str | None:
+    """``--calibration``'s file as an absolute path (recorded in matscan.json and a batch's
+    manifest, which must name it wherever they are read), checked to be a file."""
+    if file is None:
+        return None
+    path = Path(file)
+    if not path.is_file():
+        raise input_error(path, "no such file" if not path.exists() else "is not a file")
+    return str(path.resolve())
 
 
 #: How the summary line names where the maps started (``matscan.json``'s ``start``).
@@ -567,6 +579,7 @@ def cmd_batch(args: argparse.Namespace) -> str:
         led_gradient=args.led_gradient,
         exr=args.exr,
         mirrors=args.mirrors,
+        calibration=_calibration_arg(args.calibration),
     )
 
     def report(name: str, result: dict) -> None:
@@ -837,6 +850,14 @@ def build_parser() -> argparse.ArgumentParser:
         "grey card measures them); on simulated domes with LEDs ±20%% at random, fit relit 0.8-2.0 dB better on "
         "average than none, and on samples tilted 5° up to 22 dB worse; choose within 0.15 dB of fit on level "
         "samples and 0.4-22 dB better where they differed on tilted ones, at twice the time (docs/rti-record.md)",
+    )
+    p.add_argument(
+        "--calibration",
+        default=None,
+        metavar="FILE",
+        help="a calibration file to read instead of the one the capture names: another capture's "
+        "self_calibration.json, where a cooperative sample (paper, card) placed the same dome's lights "
+        '(docs/rti.md, "A dome calibrated once"); the capture is not changed',
     )
     p.add_argument(
         "--validate",
@@ -1187,6 +1208,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--led-gradient", dest="led_gradient", choices=LED_GRADIENTS, default="auto", help="as for reconstruct"
     )
+    p.add_argument("--calibration", default=None, metavar="FILE", help="as for reconstruct, for every capture")
     p.add_argument("--exr", action="store_true", help="also write every map as float EXR")
     p.add_argument("--mirrors", action="store_true", help="as for reconstruct")
     p.set_defaults(func=cmd_batch)

@@ -95,23 +95,33 @@ def capture_inputs(folder: str | Path) -> list[Path]:
         names += [e.get("file") for e in images if isinstance(e, dict)]
     if isinstance(doc.get("backlight"), dict):
         names += list(doc["backlight"].values())
-    names += [doc.get("rig"), doc.get("calibration")]
+    names.append(doc.get("rig"))
     for name in names:
         if isinstance(name, str) and name and "\x00" not in name:
             found.append(folder / name)
-    cal, cal_doc, base = doc.get("calibration"), None, folder
-    if isinstance(cal, str) and "\x00" not in cal:  # flat fields lie beside the calibration file
-        base = (folder / cal).parent
-        try:
-            cal_doc = json.loads((folder / cal).read_text(encoding="utf-8"))
-        except (OSError, ValueError, RecursionError):
-            pass
+    cal = doc.get("calibration")
+    if isinstance(cal, str) and cal and "\x00" not in cal:
+        found += calibration_inputs(folder / cal)
     elif isinstance(cal, dict):  # an inline calibration: its flat fields are relative to the capture
-        cal_doc = cal
-    flats = cal_doc.get("flat_fields", {}) if isinstance(cal_doc, dict) else {}
-    if isinstance(flats, dict):
-        found += [base / f for f in flats.values() if isinstance(f, str) and f and "\x00" not in f]
+        found += _flat_inputs(cal, folder)
     return found
+
+
+def calibration_inputs(path: Path) -> list[Path]:
+    """A calibration file and the flat fields it names (beside it): inputs too. An
+    unreadable or malformed file gives just itself (reading it reports the fault)."""
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return [path]
+    return [path, *_flat_inputs(doc, path.parent)]
+
+
+def _flat_inputs(cal: Any, base: Path) -> list[Path]:
+    flats = cal.get("flat_fields", {}) if isinstance(cal, dict) else {}
+    if not isinstance(flats, dict):
+        return []
+    return [base / f for f in flats.values() if isinstance(f, str) and f and "\x00" not in f]
 
 
 def _capture_files_here(path: Path) -> set[str]:

@@ -169,3 +169,21 @@ def test_a_manifest_from_before_the_shared_f0_default_still_resumes(tmp_path):
             assert _open_manifest(out, json_safe(asdict(replace(cfg, shared_f0=False))))["settings"] == old
         else:
             assert _open_manifest(out, now)["settings"] == old
+
+
+def test_a_manifest_from_before_calibration_files_resumes_without_one(tmp_path):
+    """Settings written before ``calibration`` (``--calibration FILE``) existed named none:
+    the batch resumes without one and refuses one."""
+    from dataclasses import asdict, replace
+
+    from matscan.batch import MANIFEST, MANIFEST_FORMAT, _open_manifest, json_safe
+    from matscan.errors import MatscanError
+    from matscan.reconstruct import ReconstructConfig
+
+    cfg = ReconstructConfig()
+    old = json_safe(asdict(cfg))
+    del old["calibration"]
+    (tmp_path / MANIFEST).write_text(json.dumps({"format": MANIFEST_FORMAT, "settings": old, "captures": {}}))
+    assert _open_manifest(tmp_path, json_safe(asdict(cfg)))["settings"] == old
+    with pytest.raises(MatscanError, match="other reconstruction settings"):
+        _open_manifest(tmp_path, json_safe(asdict(replace(cfg, calibration=str(tmp_path / "cal.json")))))

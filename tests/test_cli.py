@@ -37,6 +37,33 @@ def test_reconstruct_says_what_refine_auto_chose(tmp_path, capsys, lights, said)
     assert "refined no" in out if lights == "1" else "refined yes" in out
 
 
+def test_reconstruct_reads_the_calibration_it_is_given(tmp_path, monkeypatch, capsys):
+    """``--calibration FILE``, given relative to the current folder: the scale it gives
+    light 0 reaches the fit (a photo divided by 2 is re-rendered as half as bright: the
+    fit's diffuse halves where only that photo lights the sample), and matscan.json names
+    the file by its absolute path."""
+    import json
+
+    import torch
+
+    from matscan.color import srgb_to_linear
+
+    assert main(["simulate", "@sample", "--out", str(tmp_path / "c"), "--lights", "0,", "--size", "16"]) == 0
+    (tmp_path / "cal.json").write_text(json.dumps({"format": "matscan-calibration/1", "light_scales": {"0": 2.0}}))
+    monkeypatch.chdir(tmp_path)
+    assert main(["reconstruct", "c", "--out", "plain", "--model", "none", "--refine", "on"]) == 0
+    assert (
+        main(["reconstruct", "c", "--out", "m", "--model", "none", "--refine", "on", "--calibration", "cal.json"]) == 0
+    )
+    capsys.readouterr()
+    record = json.loads((tmp_path / "m" / "matscan.json").read_text())
+    assert record["config"]["calibration"] == str((tmp_path / "cal.json").resolve())
+    plain, halved = (
+        srgb_to_linear(torch.from_numpy(read_image(tmp_path / d / "diffuse.png").pixels)) for d in ("plain", "m")
+    )
+    assert abs(float(halved.mean()) / float(plain.mean()) - 0.5) < 0.05
+
+
 def test_simulate_exact_mode(tmp_path):
     assert (
         main(
@@ -72,6 +99,8 @@ def test_simulate_exact_mode(tmp_path):
         (["render", "@sample", "--out", "x.png", "--light", "0,0,-5"], "not above the sample plane"),
         (["render", "@sample", "--out", "x.bmp", "--light", "0,0,5"], "write .png"),
         (["sheet", "nowhere", "--out", "x.png"], "nowhere: no such map set folder"),
+        (["reconstruct", "@sample", "--out", "x", "--calibration", "nope.json"], "nope.json: no such file"),
+        (["batch", "@sample", "--out", "x", "--calibration", "."], ".: is not a file"),
     ],
 )
 def test_bad_input_is_one_line(tmp_path, monkeypatch, capsys, argv, words):

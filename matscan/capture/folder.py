@@ -421,6 +421,24 @@ def _read_calibration(raw: Any, folder: Path, path: Path) -> tuple[dict[str, Any
     raise input_error(path, f"calibration: expected a file name or an object, got {short_repr(raw)}")
 
 
+def with_calibration_file(capture: Capture, file: str | Path) -> Capture:
+    """The capture with the calibration in ``file`` in place of its own (if any), not yet
+    applied: another capture's ``self_calibration.json``, say, for a capture of the same
+    rig whose own photos cannot place the lights as well. Flat fields it names lie beside
+    it. Where the capture named a calibration of its own, ``meta["warnings"]`` says which
+    was set aside. Errors name the file in one line."""
+    path = Path(file)
+    data = read_json(path)
+    if not isinstance(data, Mapping):
+        raise input_error(path, "expected a JSON object (a matscan calibration)")
+    warnings = list(capture.meta.get("warnings", []))
+    if capture.calibration is not None:
+        own = capture.calibration_file.name if capture.calibration_file is not None else "its inline calibration"
+        warnings.append(f"the capture's calibration ({own}) was set aside for {path}")
+    meta = {**capture.meta, "warnings": warnings} if warnings else capture.meta
+    return replace(capture, calibration=dict(data), calibration_file=path, meta=meta)
+
+
 def load_capture(folder: str | Path, lights: Sequence[int] | None = None) -> Capture:
     """Read and check a capture folder (``"@sample"``: the built-in sample capture).
 

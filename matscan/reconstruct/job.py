@@ -98,6 +98,11 @@ class ReconstructConfig:
     led_gradient: str = "auto"
     exr: bool = False  # also write every map as float EXR under exr/
     directx_normals: bool = False  # also write normal_directx.png
+    # a calibration file read instead of the one the capture names (or none): another
+    # capture's self_calibration.json, say, where that capture's photos placed the lights
+    # better than this one's can (docs/rti.md, "A dome calibrated once"); used by
+    # reconstruct(), not by reconstruct_capture(), which takes the capture as calibrated
+    calibration: str | None = None
 
     def __post_init__(self) -> None:
         """Refuse settings no reconstruction can use, before any work."""
@@ -121,6 +126,8 @@ class ReconstructConfig:
             raise MatscanError(
                 "self_calibrate_positions: needs self_calibrate (the positions are fitted with the gains)"
             )
+        if self.calibration is not None and (not isinstance(self.calibration, str) or not self.calibration):
+            raise MatscanError(f"calibration: {self.calibration!r} must be a file name or None")
         if self.shared_f0 is not None and not isinstance(self.shared_f0, bool):
             raise MatscanError(f"shared_f0: {self.shared_f0!r} must be True, False or None (lightpos.SHARED_F0)")
         if self.shared_f0 is not None and not self.self_calibrate_positions:
@@ -649,18 +656,24 @@ def reconstruct(
     """
     t_all = time.perf_counter()
     from matscan.calibrate import apply_calibration
-    from matscan.outputs import capture_inputs, claim_output
+    from matscan.capture.folder import with_calibration_file
+    from matscan.outputs import calibration_inputs, capture_inputs, claim_output
     from matscan.samples import capture_folder
     from matscan.weights import anyrig_path, model_path
 
     capture_path = capture_folder(capture_path)
     inputs = capture_inputs(capture_path)
+    if cfg.calibration is not None:
+        inputs += calibration_inputs(Path(cfg.calibration))
     if cfg.model != "none":
         inputs.append(model_path(cfg.model))
     if cfg.anyrig != "none":
         inputs.append(anyrig_path(cfg.anyrig))
     with claim_output(out, "reconstruct", inputs, overwrite=overwrite, overwrite_any=overwrite_any) as claim:
-        capture = apply_calibration(load_capture(capture_path))
+        capture = load_capture(capture_path)
+        if cfg.calibration is not None:
+            capture = with_calibration_file(capture, cfg.calibration)
+        capture = apply_calibration(capture)
         h, w = capture.size
         claim.check_space(output_bytes(h, w, cfg))
         nets, model_name, networks = None, "none", {}
