@@ -120,7 +120,11 @@ plastic) calibrates each material's dome on NAME's photos under the same LEDs in
 material's photos with the lights and gains found there, as ``reconstruct --calibration``
 fits a later capture with an earlier one's ``self_calibration.json``: it prints that
 calibration's position error, the ideal dome's novel-light PSNR and the calibration's,
-and the difference (docs/rti.md, "A dome calibrated once").
+and the difference (docs/rti.md, "A dome calibrated once"). ``--calibration-cache=DIR``
+keeps each calibration in DIR (by NAME, side, seed and the material's index, which is
+what the dome's draw depends on: the four, ``--held-out`` and ``--others`` share domes by
+index) and reads it there in later runs, nothing else changed; the cache is the user's
+to clear when the code changes.
 
 ``--oracle-pair`` prints instead the antithetic pair's bias (as ``--pairs=1 --pairs-radial``
 measures it at the fit's end) measured at the truth: the replicas rendered from the true
@@ -234,7 +238,8 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
-[--variants] [--validate-choice] [--held-gains] [--profile] [--calibrated-on=NAME] [--held-out|--others] [--only=NAMES]
+[--variants] [--validate-choice] [--held-gains] [--profile] [--calibrated-on=NAME] [--calibration-cache=DIR]
+[--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
 
@@ -243,6 +248,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import pathlib
 import sys
 import time
 from dataclasses import replace
@@ -850,22 +856,32 @@ def radial_bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera:
     return float(v @ torch.linalg.pinv(s, hermitian=True, rtol=1e-12) @ v) ** 0.5
 
 
-def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, other, seed: int) -> None:
+def calibrated_on(
+    name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, other, seed: int, cache=None
+) -> None:
     """The dome self-calibrated (``--self-calibrate-positions``, its defaults) on the photos
     of another material ``other`` (name, maps) under the same LEDs, with its own noise, and
     this material's photos fitted with the lights and gains it found: what a later capture
     naming that capture's ``self_calibration.json`` (``reconstruct --calibration``) is
     fitted with. Prints that calibration's position error, this material's novel-light
     PSNR with the ideal dome and with the calibration, how far below the ideal that is,
-    and the calibration's record (read or not, the convention, the turns, its misfit)."""
-    lit = true.with_intensity(true.intensity * gains)
-    photos = simulate_images(other[1], lit, rig.field_mm, CameraModel(read_noise=0.002), seed=seed)
-    saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
-    on = replace(cap, images=photos, saturated=saturated)
-    g1, record = estimate_gains(on, cfg)
-    lights, g2, fitted = cap.lights, g1, {}
-    if record["updated"]:
-        lights, g2, fitted, _ = estimate_positions(on, g1, cfg, level=record["convention"] == "level sample")
+    and the calibration's record (read or not, the convention, the turns, its misfit).
+    ``cache`` (a file): the calibration is read from it where it exists, else written to
+    it (the bench's lists share a dome by their materials' index: ``--calibration-cache``)."""
+    if cache is not None and cache.is_file():
+        lights, g2, record, fitted = torch.load(cache, weights_only=False)
+    else:
+        lit = true.with_intensity(true.intensity * gains)
+        photos = simulate_images(other[1], lit, rig.field_mm, CameraModel(read_noise=0.002), seed=seed)
+        saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
+        on = replace(cap, images=photos, saturated=saturated)
+        g1, record = estimate_gains(on, cfg)
+        lights, g2, fitted = cap.lights, g1, {}
+        if record["updated"]:
+            lights, g2, fitted, _ = estimate_positions(on, g1, cfg, level=record["convention"] == "level sample")
+        if cache is not None:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            torch.save((lights, g2, record, fitted), cache)
     ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
     reused = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
     err = (lights.position - true.position).norm(dim=1)
@@ -982,6 +998,7 @@ def main() -> None:
         materials += [(f"{n} (artist)", artist_material(n, size)) for n in ("foil-print", "black-leather", "lacquer")]
     named = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--calibrated-on=")), None)
     on = next(((n, m) for n, m in main_four if n.startswith(named)), None) if named else None
+    cached = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--calibration-cache=")), None)
     if named and on is None:
         raise SystemExit(f"--calibrated-on={named}: not one of paper, brick, leather, plastic")
     cfg = ReconstructConfig(model="none", refine="on", solver="lm")
@@ -1095,7 +1112,10 @@ def main() -> None:
             continue
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
         if on is not None:  # the dome calibrated on another material's photos under the same LEDs
-            calibrated_on(name, cap, cfg, maps, true, gains, rig, on, seed=700 + i + draw)
+            file = None
+            if cached:  # the bench's lists share a dome by index: one calibration per index and draw
+                file = pathlib.Path(cached) / f"{on[0]}-{size}-seed{draw // 1000}-{i}.pt"
+            calibrated_on(name, cap, cfg, maps, true, gains, rig, on, seed=700 + i + draw, cache=file)
             continue
         if at is not None:  # what an estimator at the bound would relight at
             at_bound(name, cap, cfg, maps, true, gains, rig, at, seed=300 + i + draw)
