@@ -114,13 +114,15 @@ model, which its starts share; the first fit's is the profiles').
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
 
-``--calibrated-on=NAME`` (with ``--joint``; NAME one of the four: paper, brick, leather,
-plastic) calibrates each material's dome on NAME's photos under the same LEDs instead
-(their own camera noise; ``--self-calibrate-positions`` as it ships), and fits the
-material's photos with the lights and gains found there, as ``reconstruct --calibration``
-fits a later capture with an earlier one's ``self_calibration.json``: it prints that
-calibration's position error, the ideal dome's novel-light PSNR and the calibration's,
-and the difference (docs/rti.md, "A dome calibrated once"). ``--calibration-cache=DIR``
+``--calibrated-on=NAME[,NAME...]`` (with ``--joint``; each NAME one of the four: paper,
+brick, leather, plastic) calibrates each material's dome on NAME's photos under the same
+LEDs instead (their own camera noise; ``--self-calibrate-positions`` as it ships), and
+fits the material's photos with the lights and gains found there, as ``reconstruct
+--calibration`` fits a later capture with an earlier one's ``self_calibration.json``;
+with several NAMEs, with their calibrations merged as ``calibrate --merge`` merges them
+(those whose intensities could not be read left out). It prints the calibration's
+position error, the ideal dome's novel-light PSNR and the calibration's, and the
+difference (docs/rti.md, "A dome calibrated once"). ``--calibration-cache=DIR``
 keeps each calibration in DIR (by NAME, side, seed and the material's index, which is
 what the dome's draw depends on: the four, ``--held-out`` and ``--others`` share domes by
 index) and reads it there in later runs, nothing else changed; the cache is the user's
@@ -238,7 +240,7 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
-[--variants] [--validate-choice] [--held-gains] [--profile] [--calibrated-on=NAME] [--calibration-cache=DIR]
+[--variants] [--validate-choice] [--held-gains] [--profile] [--calibrated-on=NAME,...] [--calibration-cache=DIR]
 [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -856,41 +858,69 @@ def radial_bound(maps: MapSet, true: LightSet, gains: torch.Tensor, rig, camera:
     return float(v @ torch.linalg.pinv(s, hermitian=True, rtol=1e-12) @ v) ** 0.5
 
 
-def calibrated_on(
-    name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, other, seed: int, cache=None
-) -> None:
+def calibration_of(cap: Capture, cfg, true: LightSet, gains, rig, other, seed: int, cache=None):
     """The dome self-calibrated (``--self-calibrate-positions``, its defaults) on the photos
-    of another material ``other`` (name, maps) under the same LEDs, with its own noise, and
-    this material's photos fitted with the lights and gains it found: what a later capture
-    naming that capture's ``self_calibration.json`` (``reconstruct --calibration``) is
-    fitted with. Prints that calibration's position error, this material's novel-light
-    PSNR with the ideal dome and with the calibration, how far below the ideal that is,
-    and the calibration's record (read or not, the convention, the turns, its misfit).
-    ``cache`` (a file): the calibration is read from it where it exists, else written to
-    it (the bench's lists share a dome by their materials' index: ``--calibration-cache``)."""
+    of another material ``other`` (name, maps) under the same LEDs, with its own noise:
+    its lights, gains, the intensities' record and the positions' record. ``cache`` (a
+    file): read from it where it exists, else written to it (the bench's lists share a
+    dome by their materials' index: ``--calibration-cache``)."""
     if cache is not None and cache.is_file():
-        lights, g2, record, fitted = torch.load(cache, weights_only=False)
+        return torch.load(cache, weights_only=False)
+    lit = true.with_intensity(true.intensity * gains)
+    photos = simulate_images(other[1], lit, rig.field_mm, CameraModel(read_noise=0.002), seed=seed)
+    saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
+    on = replace(cap, images=photos, saturated=saturated)
+    g1, record = estimate_gains(on, cfg)
+    lights, g2, fitted = cap.lights, g1, {}
+    if record["updated"]:
+        lights, g2, fitted, _ = estimate_positions(on, g1, cfg, level=record["convention"] == "level sample")
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        torch.save((lights, g2, record, fitted), cache)
+    return lights, g2, record, fitted
+
+
+def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, others, seed, caches):
+    """This material's photos fitted with the lights and gains of the dome calibrated on
+    the photos of ``others`` (``calibration_of`` each; more than one merged by
+    ``matscan.calibrate.merge_calibrations``, those whose intensities could not be read
+    left out, as ``reconstruct`` warns of them): what a later capture naming that
+    ``self_calibration.json``, or the merge of several (``calibrate --merge``), is fitted
+    with (``reconstruct --calibration``). Prints the calibration's position error, this
+    material's novel-light PSNR with the ideal dome and with the calibration, how far
+    below the ideal that is, and each calibration's record (read or not, the turns, its
+    misfit) or, merged, how many went in and their spread."""
+    from matscan.calibrate import merge_calibrations, with_light_positions
+
+    fits = [calibration_of(cap, cfg, true, gains, rig, o, seed, c) for o, c in zip(others, caches, strict=True)]
+    read = [f for f in fits if f[2]["updated"]]
+    if len(others) == 1 or not read:
+        lights, g2, record, fitted = fits[0]
+        turns = len([t for t in fitted.get("level_turns", []) if t.get("made")])
+        said = f"read {record['updated']}, {record['convention']}, {turns} turns, "
+        said += f"misfit {fitted.get('misfit_per_value', {}).get('end')}"
     else:
-        lit = true.with_intensity(true.intensity * gains)
-        photos = simulate_images(other[1], lit, rig.field_mm, CameraModel(read_noise=0.002), seed=seed)
-        saturated = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
-        on = replace(cap, images=photos, saturated=saturated)
-        g1, record = estimate_gains(on, cfg)
-        lights, g2, fitted = cap.lights, g1, {}
-        if record["updated"]:
-            lights, g2, fitted, _ = estimate_positions(on, g1, cfg, level=record["convention"] == "level sample")
-        if cache is not None:
-            cache.parent.mkdir(parents=True, exist_ok=True)
-            torch.save((lights, g2, record, fitted), cache)
+        docs = [
+            {
+                "format": "matscan-calibration/1",
+                "light_scales": {str(k): g[k].tolist() for k in range(len(g))},
+                "light_positions_mm": {str(k): lt.position[k].tolist() for k in range(len(g))},
+            }
+            for lt, g, _, _ in read
+        ]
+        m = merge_calibrations(docs, [f"calibration {k}" for k in range(len(docs))])
+        place = {int(k): v for k, v in m.document["light_positions_mm"].items()}
+        lights = with_light_positions(cap, place).lights
+        g2 = torch.tensor([m.document["light_scales"][str(k)] for k in range(24)], dtype=torch.float32)
+        each = ", ".join(f"{float((f[0].position - true.position).norm(dim=1).mean()):.2f}" for f in read)
+        said = f"{len(read)} of {len(fits)} merged (their own errors {each} mm; spread {m.position_spread_mm:.2f})"
     ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
     reused = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
     err = (lights.position - true.position).norm(dim=1)
     psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in (ideal, reused)]
-    turns = len([t for t in fitted.get("level_turns", []) if t.get("made")])
     print(
         f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}   {psnr[0]:7.2f} {psnr[1]:7.2f} "
-        f"{psnr[0] - psnr[1]:7.2f}   read {record['updated']}, {record['convention']}, {turns} turns, "
-        f"misfit {fitted.get('misfit_per_value', {}).get('end')}",
+        f"{psnr[0] - psnr[1]:7.2f}   {said}",
         flush=True,
     )
 
@@ -996,11 +1026,11 @@ def main() -> None:
         materials = [(f, generate(f, size, 1)) for f in ("woven_plain", "knit", "painted", "metal_brushed")]
         materials += [("gravel (photo)", photo_material("gravel", size))]
         materials += [(f"{n} (artist)", artist_material(n, size)) for n in ("foil-print", "black-leather", "lacquer")]
-    named = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--calibrated-on=")), None)
-    on = next(((n, m) for n, m in main_four if n.startswith(named)), None) if named else None
+    named = next((a.split("=", 1)[1].split(",") for a in sys.argv[1:] if a.startswith("--calibrated-on=")), [])
+    on = [next(((n, m) for n, m in main_four if n.startswith(k)), None) for k in named] or None
     cached = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--calibration-cache=")), None)
-    if named and on is None:
-        raise SystemExit(f"--calibrated-on={named}: not one of paper, brick, leather, plastic")
+    if on and None in on:
+        raise SystemExit(f"--calibrated-on={','.join(named)}: each must be one of paper, brick, leather, plastic")
     cfg = ReconstructConfig(model="none", refine="on", solver="lm")
     if "--choose" in sys.argv:  # both conventions, the better re-rendering kept (led_gradient "choose")
         cfg = replace(cfg, self_calibrate=True, led_gradient="choose")
@@ -1047,8 +1077,8 @@ def main() -> None:
         print(f"{'material':16s}  ideal    mean   worst  within 0.5 dB   mm   bound (dB; lights drawn at the bound)")
     elif on is not None:
         print(
-            f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal {on[0]}'s  below   "
-            f"(mm, dB; the dome self-calibrated on {on[0]}'s photos, reused)"
+            f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal  reused  below   "
+            f"(mm, dB; the dome self-calibrated on {' and '.join(named)}'s photos, reused)"
         )
     else:
         print(f"{'material':16s} {'pos err mean':>12s} {'max':>6s}   PSNR ideal nominal  gains +positions (dB)")
@@ -1111,11 +1141,11 @@ def main() -> None:
             print(f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}" + radial + f0, flush=True)
             continue
         cap = Capture(rig, rig.field_mm, "srgb", photos, saturated, tuple(range(24)), nominal, files)
-        if on is not None:  # the dome calibrated on another material's photos under the same LEDs
-            file = None
+        if on is not None:  # the dome calibrated on other materials' photos under the same LEDs
+            files = [None] * len(on)
             if cached:  # the bench's lists share a dome by index: one calibration per index and draw
-                file = pathlib.Path(cached) / f"{on[0]}-{size}-seed{draw // 1000}-{i}.pt"
-            calibrated_on(name, cap, cfg, maps, true, gains, rig, on, seed=700 + i + draw, cache=file)
+                files = [pathlib.Path(cached) / f"{k}-{size}-seed{draw // 1000}-{i}.pt" for k in named]
+            calibrated_on(name, cap, cfg, maps, true, gains, rig, on, 700 + i + draw, files)
             continue
         if at is not None:  # what an estimator at the bound would relight at
             at_bound(name, cap, cfg, maps, true, gains, rig, at, seed=300 + i + draw)

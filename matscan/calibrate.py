@@ -787,6 +787,118 @@ def _calibrate(
     return Calibration(out, matrix, residual, scales, flats, tuple(warnings), fit)
 
 
+@dataclass(frozen=True)
+class Merged:
+    """What :func:`merge_calibrations` made of several calibrations of one dome.
+
+    Attributes:
+        document: the merged calibration object (write it, or name it in a capture).
+        files: how many calibrations went in.
+        positions: how many of them gave each light's position, by light key.
+        position_spread_mm: the RMS distance of the calibrations' positions from their
+            mean (over every light two or more placed; None where none was): how far
+            apart the captures put the lights. The mean's own error is about this over
+            the square root of the count, where their errors are independent.
+        scale_spread: the same for the scales' logarithms (RMS, a share).
+    """
+
+    document: dict[str, Any]
+    files: int
+    positions: dict[str, int]
+    position_spread_mm: float | None
+    scale_spread: float | None
+
+
+def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[str]) -> Merged:
+    """One calibration from several calibrations of the same dome (``calibrate --merge``):
+    each light's position the mean of the positions the calibrations give it, each
+    light's RGB scale their geometric mean; the colour matrix, grey albedo and flat fields
+    must be the same in all (the same base calibration, as self-calibrations of captures
+    sharing one calibration file write them; flat-field names compared as given).
+
+    Self-calibrations of captures of different samples under one dome (each capture's
+    ``self_calibration.json``) place its lights with errors of their own; their mean
+    places them closer than most do alone (docs/rti.md, "A dome calibrated once").
+    ``names`` name the documents in errors (the files they were read from)."""
+    if len(documents) != len(names) or not documents:
+        raise MatscanError("calibrate --merge: give one or more calibration files")
+    positions: dict[str, list[tuple[float, ...]]] = {}
+    scales: dict[str, list[tuple[float, ...]]] = {}
+    base: dict[str, Any] | None = None
+    for doc, name in zip(documents, names, strict=True):
+        check_object(doc, name, _CALIBRATION_KEYS)
+        if doc["format"] != CALIBRATION_FORMAT:
+            raise MatscanError(f"{name}: format: must be {CALIBRATION_FORMAT!r}, got {short_repr(doc['format'])}")
+        rest = {k: v for k, v in doc.items() if k not in ("light_scales", "light_positions_mm")}
+        if base is None:
+            base, first = rest, name
+        elif rest != base:
+            key = next(k for k in sorted(set(rest) | set(base)) if rest.get(k) != base.get(k))
+            raise MatscanError(
+                f"{name}: {key} differs from {first}'s; merge only calibrations made on one base calibration"
+            )
+        for k, v in check_object(doc.get("light_scales", {}), f"{name}: light_scales").items():
+            field = f"{name}: light_scales[{short_repr(k)}]"
+            if not _LIGHT_KEY.fullmatch(k):
+                raise MatscanError(f"{field}: {short_repr(k)} is not a light index")
+            rgb = check_vector(v, 3, field) if isinstance(v, (list, tuple)) else (check_number(v, field),) * 3
+            for c in rgb:
+                check_number(c, field, *SCALE_LIMITS, positive=True)
+            scales.setdefault(k, []).append(rgb)
+        for k, v in check_object(doc.get("light_positions_mm", {}), f"{name}: light_positions_mm").items():
+            field = f"{name}: light_positions_mm[{short_repr(k)}]"
+            if not _LIGHT_KEY.fullmatch(k):
+                raise MatscanError(f"{field}: {short_repr(k)} is not a light index")
+            xyz = check_vector(v, 3, field)
+            if xyz[2] <= 0:
+                raise MatscanError(f"{field}: light {k} is at z = {xyz[2]:g} mm, not above the sample plane")
+            positions.setdefault(k, []).append(xyz)
+    merged = dict(base or {})
+
+    def order(d: dict[str, Any]) -> dict[str, Any]:
+        return dict(sorted(d.items(), key=lambda kv: int(kv[0])))
+
+    logs = {k: torch.tensor(v, dtype=torch.float64).log() for k, v in scales.items()}
+    pts = {k: torch.tensor(v, dtype=torch.float64) for k, v in positions.items()}
+    if logs:
+        merged["light_scales"] = order({k: [round(float(c), 6) for c in t.mean(0).exp()] for k, t in logs.items()})
+    if pts:
+        merged["light_positions_mm"] = order({k: [round(float(c), 3) for c in t.mean(0)] for k, t in pts.items()})
+
+    def spread(groups: dict[str, Tensor]) -> float | None:
+        """RMS over the lights given twice or more of each value's distance from its light's mean."""
+        devs = [(t - t.mean(0)).square().sum(1) for t in groups.values() if len(t) > 1]
+        return float(torch.cat(devs).mean().sqrt()) if devs else None
+
+    log_spread = spread(logs)
+    return Merged(
+        merged,
+        len(documents),
+        {k: len(v) for k, v in order(positions).items()},
+        spread(pts),
+        log_spread / math.sqrt(3) if log_spread is not None else None,  # per channel
+    )
+
+
+def merge(out: str | Path, files: Sequence[str | Path], overwrite: bool = False) -> Merged:
+    """``matscan calibrate --merge FILES --out FILE``: read each calibration file, merge
+    them (:func:`merge_calibrations`) and write the result to ``out``, checked and locked
+    first and written atomically, never over one of the files. Flat fields named by
+    relative paths must lie beside ``out`` as they lie beside the files: self-calibrations
+    name them by absolute path."""
+    from matscan.atomic import write_text
+    from matscan.jsonfile import dumps, read_json
+    from matscan.outputs import calibration_inputs, claim_output
+
+    paths = [Path(f) for f in files]
+    inputs = [p for path in paths for p in calibration_inputs(path)]
+    with claim_output(out, "calibrate", inputs, kind="file", overwrite=overwrite) as claim:
+        documents = [read_json(p) for p in paths]
+        result = merge_calibrations(documents, [str(p) for p in paths])
+        write_text(claim.path, dumps(result.document, str(claim.path)))
+    return result
+
+
 _CALIBRATION_KEYS = {
     "format": True,
     "colour_matrix": False,

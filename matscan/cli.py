@@ -195,6 +195,21 @@ def _calibration_arg(file: str | None) -> str | None:
     return str(path.resolve())
 
 
+def _merge_calibrations(args: argparse.Namespace) -> str:
+    from matscan.calibrate import merge
+
+    m = merge(args.out, args.merge, overwrite=args.overwrite)
+    parts = [f"{m.files} calibrations merged"]
+    if m.positions:
+        counts = sorted(set(m.positions.values()))
+        each = f"{counts[0]}" if len(counts) == 1 else f"{counts[0]} to {counts[-1]}"
+        spread = f"; their spread about the mean {m.position_spread_mm:.2f} mm RMS" if m.position_spread_mm else ""
+        parts.append(f"{len(m.positions)} light positions (each the mean of {each}{spread})")
+    if m.scale_spread is not None:
+        parts.append(f"light scales (geometric means; spread {100 * m.scale_spread:.1f}%)")
+    return f"calibrate: wrote {args.out}: " + ", ".join(parts)
+
+
 #: How the summary line names where the maps started (``matscan.json``'s ``start``).
 START_NAMES = {"networks": "the networks' maps", "any-rig network": "the any-rig network's maps", "flat": "flat maps"}
 
@@ -202,6 +217,10 @@ START_NAMES = {"networks": "the networks' maps", "any-rig network": "the any-rig
 def cmd_calibrate(args: argparse.Namespace) -> str:
     from matscan.calibrate import calibrate
 
+    if args.merge:
+        if args.grey or args.chart:
+            raise MatscanError("calibrate: --merge merges calibration files; measure with --grey/--chart apart")
+        return _merge_calibrations(args)
     if not args.grey and not args.chart:
         raise MatscanError("calibrate: give --grey CAPTURE (grey card under each light) and/or --chart PHOTO")
     if args.positions and not args.grey:
@@ -876,7 +895,9 @@ def build_parser() -> argparse.ArgumentParser:
     _overwrite_folder(p)
     p.set_defaults(func=cmd_reconstruct)
 
-    p = sub.add_parser("calibrate", help="write calibration.json from a ColorChecker photo and/or a grey card")
+    p = sub.add_parser(
+        "calibrate", help="write calibration.json from a ColorChecker photo and/or a grey card, or merge calibrations"
+    )
     p.add_argument("--out", required=True, help="calibration.json to write (put it in the capture folder)")
     p.add_argument("--grey", default=None, metavar="CAPTURE", help="capture of an 18%% grey card under each light")
     p.add_argument("--flat-fields", dest="flat_fields", action="store_true", help="also write per-light flat fields")
@@ -893,6 +914,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="X,Y,…",
         help="outer corners of the chart's grid of patches TL,TR,BR,BL as 8 numbers in pixels "
         "(default: found in the photo)",
+    )
+    p.add_argument(
+        "--merge",
+        nargs="+",
+        default=None,
+        metavar="FILE",
+        help="merge calibration files of one dome instead (the self_calibration.json of several captures): "
+        "each light's position their mean, its scale their geometric mean (docs/rti.md, "
+        '"A dome calibrated once")',
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing calibration file")
     p.set_defaults(func=cmd_calibrate)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -366,3 +367,70 @@ def test_light_fit_warnings_name_the_lights_and_what_to_check():
     assert moved.startswith("cal.json: lights 3, 4 have moved more than 20 mm from the rig file (up to 31.5 mm)")
     assert "matte" in moved
     assert residual.startswith("cal.json: the grey card departs from the lights' model by 5.0% (rms)")
+
+
+def test_merged_calibrations_are_the_mean_places_and_geometric_mean_scales():
+    """Three calibrations of one dome (hand-made numbers): light 0's merged position is
+    the mean of three, light 2's (placed by one) is its own; scales (one number or RGB)
+    merge to their geometric mean; the spreads are the RMS distances from the means,
+    worked out by hand."""
+    from matscan.calibrate import merge_calibrations
+
+    base, p, s = {"format": "matscan-calibration/1", "grey_albedo": 0.18}, "light_positions_mm", "light_scales"
+    docs = [
+        {**base, p: {"0": [10, 0, 200], "1": [0, 20, 190]}, s: {"0": 2.0, "1": [1, 1, 4]}},
+        {**base, p: {"0": [13, 0, 200], "1": [0, 24, 190]}, s: {"0": 8.0, "1": [1, 4, 1]}},
+        {**base, p: {"0": [10, 3, 203], "2": [5, 5, 100]}, s: {"0": [4, 4, 4]}},
+    ]
+    m = merge_calibrations(docs, ["a.json", "b.json", "c.json"])
+    assert m.files == 3 and m.positions == {"0": 3, "1": 2, "2": 1}
+    assert m.document["grey_albedo"] == 0.18 and m.document["format"] == "matscan-calibration/1"
+    assert m.document["light_positions_mm"] == {"0": [11.0, 1.0, 201.0], "1": [0.0, 22.0, 190.0], "2": [5, 5, 100]}
+    assert m.document["light_scales"] == {"0": [4.0, 4.0, 4.0], "1": [1.0, 2.0, 2.0]}  # (2·8·4)^(1/3) = 4
+    # light 0: squared distances 2²+1²+1² = 6, 1+1+1 = 3, 1+2²+2² = 9; light 1: 2² twice
+    assert m.position_spread_mm == pytest.approx(math.sqrt((6 + 3 + 9 + 4 + 4) / 5))
+    # log scales, each channel: light 0's log 2, 8, 4 lie -log 2, +log 2, 0 from log 4; light 1's two
+    # files lie ∓log 2 from log 2 in green and in blue, 0 in red
+    ln2 = math.log(2)
+    per_light0 = [3 * ln2**2, 3 * ln2**2, 0.0]  # squared distances summed over the 3 channels
+    per_light1 = [2 * ln2**2, 2 * ln2**2]
+    assert m.scale_spread == pytest.approx(math.sqrt(sum(per_light0 + per_light1) / 5 / 3))
+
+
+@pytest.mark.parametrize(
+    ("change", "said"),
+    [
+        ({"colour_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}, "b.json: colour_matrix differs from a.json's"),
+        ({"format": "matscan-calibration/2"}, "b.json: format: must be 'matscan-calibration/1'"),
+        ({"light_scales": {"0": -1.0}}, "b.json: light_scales['0']"),
+        ({"light_positions_mm": {"0": [0, 0, -3]}}, "not above the sample plane"),
+        ({"light_positions_mm": {"x": [0, 0, 3]}}, "'x' is not a light index"),
+        ({"flat_fields": {"0": "flat_00.exr"}}, "b.json: flat_fields differs from a.json's"),
+    ],
+)
+def test_merging_calibrations_refuses_what_differs_or_is_wrong(change, said):
+    from matscan.calibrate import merge_calibrations
+
+    a = {"format": "matscan-calibration/1", "light_scales": {"0": 1.0}}
+    with pytest.raises(MatscanError, match=re.escape(said)):
+        merge_calibrations([a, {**a, **change}], ["a.json", "b.json"])
+
+
+def test_calibrate_merge_writes_the_merge_and_never_over_its_files(tmp_path, capsys):
+    """``matscan calibrate --merge``: the merged file and a summary with the count and the
+    spread; an --out that is one of the files is refused, and --merge with --grey."""
+    files = []
+    for k, x in enumerate((10.0, 14.0)):
+        doc = {"format": "matscan-calibration/1", "light_positions_mm": {"3": [x, 0.0, 150.0]}}
+        files.append(tmp_path / f"s{k}.json")
+        files[-1].write_text(json.dumps(doc))
+    out = tmp_path / "dome.json"
+    assert main(["calibrate", "--merge", *map(str, files), "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "2 calibrations merged" in said and "spread about the mean 2.00 mm RMS" in said
+    assert json.loads(out.read_text())["light_positions_mm"] == {"3": [12.0, 0.0, 150.0]}
+    before = files[0].read_bytes()
+    assert main(["calibrate", "--merge", *map(str, files), "--out", str(files[0]), "--overwrite"]) == 2
+    assert "never writes over its inputs" in capsys.readouterr().err and files[0].read_bytes() == before
+    assert main(["calibrate", "--merge", str(files[0]), "--grey", "@sample", "--out", str(out)]) == 2
+    assert "--merge merges calibration files" in capsys.readouterr().err
