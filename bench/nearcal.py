@@ -122,7 +122,11 @@ fits the material's photos with the lights and gains found there, as ``reconstru
 with several NAMEs, with their calibrations merged as ``calibrate --merge`` merges them
 (those whose intensities could not be read left out). It prints the calibration's
 position error, the ideal dome's novel-light PSNR and the calibration's, and the
-difference (docs/rti.md, "A dome calibrated once"). ``--calibration-cache=DIR``
+difference (docs/rti.md, "A dome calibrated once"). ``--then-fit`` self-calibrates
+each material from there too (``reconstruct --calibration FILE
+--self-calibrate-positions``: the joint fit starts at the calibration's places and
+scales, or holds them where the material's intensities cannot be read) and prints that
+fit's position error, PSNR and shortfall after. ``--calibration-cache=DIR``
 keeps each calibration in DIR (by NAME, side, seed and the material's index, which is
 what the dome's draw depends on: the four, ``--held-out`` and ``--others`` share domes by
 index) and reads it there in later runs, nothing else changed; the cache is the user's
@@ -240,8 +244,8 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--pin-roughness] [--f0-grid=V,...]
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
-[--variants] [--validate-choice] [--held-gains] [--profile] [--calibrated-on=NAME,...] [--calibration-cache=DIR]
-[--held-out|--others] [--only=NAMES]
+[--variants] [--validate-choice] [--held-gains] [--profile]
+[--calibrated-on=NAME,...] [--then-fit] [--calibration-cache=DIR] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
 
@@ -880,49 +884,53 @@ def calibration_of(cap: Capture, cfg, true: LightSet, gains, rig, other, seed: i
     return lights, g2, record, fitted
 
 
-def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, others, seed, caches):
-    """This material's photos fitted with the lights and gains of the dome calibrated on
-    the photos of ``others`` (``calibration_of`` each; more than one merged by
-    ``matscan.calibrate.merge_calibrations``, those whose intensities could not be read
-    left out, as ``reconstruct`` warns of them): what a later capture naming that
-    ``self_calibration.json``, or the merge of several (``calibrate --merge``), is fitted
-    with (``reconstruct --calibration``). Prints the calibration's position error, this
-    material's novel-light PSNR with the ideal dome and with the calibration, how far
-    below the ideal that is, and each calibration's record (read or not, the turns, its
-    misfit) or, merged, how many went in and their spread."""
-    from matscan.calibrate import merge_calibrations, with_light_positions
+def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, others, seed, caches, fit):
+    """This material's photos fitted with the dome calibrated on the photos of ``others``
+    (``calibration_of`` each; more than one merged by ``matscan.calibrate.merge_calibrations``,
+    those whose intensities could not be read left out, as ``reconstruct`` warns of
+    them), the calibration given to the capture as ``reconstruct --calibration`` gives it
+    (``apply_calibration``): its lights' places and scales. With ``fit`` the capture is
+    then self-calibrated from there too (``--self-calibrate-positions``, as
+    ``reconstruct --calibration FILE --self-calibrate-positions`` runs it). Prints the
+    calibration's position error, this material's novel-light PSNR with the ideal dome and
+    with the calibration, how far below the ideal that is (with ``fit``, then the fit's
+    position error, PSNR and shortfall), and each calibration's record (read or not, the
+    turns, its misfit) or, merged, how many went in, their errors and their spread."""
+    from matscan.calibrate import apply_calibration, merge_calibrations
 
     fits = [calibration_of(cap, cfg, true, gains, rig, o, seed, c) for o, c in zip(others, caches, strict=True)]
-    read = [f for f in fits if f[2]["updated"]]
-    if len(others) == 1 or not read:
-        lights, g2, record, fitted = fits[0]
+    read = [f for f in fits if f[2]["updated"]] or fits[:1]
+    docs = [
+        {
+            "format": "matscan-calibration/1",
+            "light_scales": {str(k): g[k].tolist() for k in range(len(g))},
+            "light_positions_mm": {str(k): lt.position[k].tolist() for k in range(len(g))},
+        }
+        for lt, g, _, _ in read
+    ]
+    m = merge_calibrations(docs, [f"calibration {k}" for k in range(len(docs))])
+    if len(others) == 1:
+        _, _, record, fitted = fits[0]
         turns = len([t for t in fitted.get("level_turns", []) if t.get("made")])
         said = f"read {record['updated']}, {record['convention']}, {turns} turns, "
         said += f"misfit {fitted.get('misfit_per_value', {}).get('end')}"
     else:
-        docs = [
-            {
-                "format": "matscan-calibration/1",
-                "light_scales": {str(k): g[k].tolist() for k in range(len(g))},
-                "light_positions_mm": {str(k): lt.position[k].tolist() for k in range(len(g))},
-            }
-            for lt, g, _, _ in read
-        ]
-        m = merge_calibrations(docs, [f"calibration {k}" for k in range(len(docs))])
-        place = {int(k): v for k, v in m.document["light_positions_mm"].items()}
-        lights = with_light_positions(cap, place).lights
-        g2 = torch.tensor([m.document["light_scales"][str(k)] for k in range(24)], dtype=torch.float32)
         each = ", ".join(f"{float((f[0].position - true.position).norm(dim=1).mean()):.2f}" for f in read)
         said = f"{len(read)} of {len(fits)} merged (their own errors {each} mm; spread {m.position_spread_mm:.2f})"
+    given = apply_calibration(replace(cap, calibration=m.document))
     ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
-    reused = reconstruct_capture(with_gains(replace(cap, lights=lights), g2), cfg)
-    err = (lights.position - true.position).norm(dim=1)
-    psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in (ideal, reused)]
-    print(
-        f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}   {psnr[0]:7.2f} {psnr[1]:7.2f} "
-        f"{psnr[0] - psnr[1]:7.2f}   {said}",
-        flush=True,
-    )
+    runs = [reconstruct_capture(given, cfg)]
+    if fit:
+        runs.append(reconstruct_capture(given, replace(cfg, self_calibrate=True, self_calibrate_positions=True)))
+    psnr = [novel_psnr(r.maps, r.intensity_scale, maps, rig.field_mm) for r in (ideal, *runs)]
+    line = f"{name:16s} {float((given.lights.position - true.position).norm(dim=1).mean()):12.2f} "
+    line += f"{float((given.lights.position - true.position).norm(dim=1).max()):6.2f}   {psnr[0]:7.2f} "
+    line += f"{psnr[1]:7.2f} {psnr[0] - psnr[1]:7.2f}"
+    if fit:
+        placed = runs[1].lights.position if runs[1].lights is not None else given.lights.position
+        line += f"   then fitted {float((placed - true.position).norm(dim=1).mean()):5.2f} mm {psnr[2]:7.2f} "
+        line += f"{psnr[0] - psnr[2]:7.2f}" + ("" if runs[1].lights is not None else " (held)")
+    print(f"{line}   {said}", flush=True)
 
 
 def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits) -> None:
@@ -1145,7 +1153,8 @@ def main() -> None:
             files = [None] * len(on)
             if cached:  # the bench's lists share a dome by index: one calibration per index and draw
                 files = [pathlib.Path(cached) / f"{k}-{size}-seed{draw // 1000}-{i}.pt" for k in named]
-            calibrated_on(name, cap, cfg, maps, true, gains, rig, on, 700 + i + draw, files)
+            fit = "--then-fit" in sys.argv
+            calibrated_on(name, cap, cfg, maps, true, gains, rig, on, 700 + i + draw, files, fit)
             continue
         if at is not None:  # what an estimator at the bound would relight at
             at_bound(name, cap, cfg, maps, true, gains, rig, at, seed=300 + i + draw)
