@@ -894,7 +894,8 @@ def test_reconstruct_writes_the_positions_and_a_later_capture_reads_them(tmp_pat
 
 def test_positions_are_kept_where_the_intensities_could_not_be_read():
     """With 16 of 24 photos saturated the intensities keep the rig file's values, and so do
-    the positions, with a warning that says so."""
+    the positions, with a warning that says so and how to place them (a calibration
+    merged from other captures); given a calibration's places, those are held instead."""
     maps = generate("paper", 32, 1)
     photos = _photos(maps, _offsets(), _gains(), noise=0.0)
     sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
@@ -905,10 +906,19 @@ def test_positions_are_kept_where_the_intensities_could_not_be_read():
     assert res.self_calibration["updated"] is False and "positions" not in res.self_calibration
     assert res.lights is None
     assert sum("rig file's positions are kept" in w for w in res.warnings) == 1
+    assert sum("give --calibration the places of this dome merged" in w for w in res.warnings) == 1
     # the intensities fitted with the lights held instead (estimate_held_gains), recorded
     held = res.self_calibration["held_gains"]["light_gains"]
     torch.testing.assert_close(torch.tensor([held[f] for f in FILES]), res.light_gains, atol=1e-5, rtol=0)
     assert sum("every light held at its place" in w for w in res.warnings) == 1
+    # with a calibration that places the lights, those places are the ones held, and said to be
+    moved = [float(v) + 3.0 for v in RIG.lights[5].position_mm]
+    cal = {"format": "matscan-calibration/1", "light_positions_mm": {"5": moved}}
+    given = apply_calibration(replace(cap, calibration=cal))
+    again = reconstruct_capture(given, cfg)
+    assert again.lights is None and given.lights.position[5].tolist() == pytest.approx(moved)
+    assert sum("the calibration's positions are kept" in w for w in again.warnings) == 1
+    assert not any("give --calibration" in w for w in again.warnings)
 
 
 def test_the_held_gains_read_the_intensities_with_every_light_where_the_capture_puts_it():

@@ -403,11 +403,25 @@ def reconstruct_capture(
                 capture, gains, cfg, progress, record["convention"] == "level sample"
             )
             held = True
+            placed = "light_positions_mm" in (capture.calibration or {})
+            why = (
+                "the intensities estimated from the photos re-render them no better than the capture's own"
+                if "rejected" in record
+                else "the diffuse reflection does not show the lights' intensities (a metal or a black fabric shows "
+                "too little)"
+            )
             notes.append(
-                "--self-calibrate-positions: the diffuse reflection does not show the lights' intensities (a metal or "
-                "a black fabric shows too little), so they were fitted with the maps, every light held at its place; "
-                "the rig file's positions are kept (placed from such photos, a simulated knit, worn print and brushed "
-                "metal's lights went 20-87 mm astray: docs/rti-record.md)"
+                f"--self-calibrate-positions: {why}, so they were fitted with the maps, every light held at its place; "
+                + ("the calibration's" if placed else "the rig file's")
+                + " positions are kept (placed from such photos, a simulated knit, worn print and brushed metal's "
+                "lights went 20-87 mm astray: docs/rti-record.md)"
+                + (
+                    ""
+                    if placed
+                    else "; to place them, give --calibration the places of this dome merged from captures of samples "
+                    "that show them (matscan calibrate --merge of their self_calibration.json: docs/rti.md, "
+                    '"A dome calibrated once")'
+                )
             )
         elif cfg.self_calibrate_positions:
             from matscan.reconstruct.lightpos import estimate_positions
