@@ -126,7 +126,10 @@ difference (docs/rti.md, "A dome calibrated once"). ``--then-fit`` self-calibrat
 each material from there too (``reconstruct --calibration FILE
 --self-calibrate-positions``: the joint fit starts at the calibration's places and
 scales, or holds them where the material's intensities cannot be read) and prints that
-fit's position error, PSNR and shortfall after. ``--calibration-cache=DIR``
+fit's position error, PSNR and shortfall after; ``--calibrated-spread=S`` fits them from
+there with a prior of S mm per axis about the calibration's places, and fits them even
+where the intensities were right already (``lightpos.CALIBRATED_SPREAD_MM``; without it
+the places are held there). ``--calibration-cache=DIR``
 keeps each calibration in DIR (by NAME, side, seed and the material's index, which is
 what the dome's draw depends on: the four, ``--held-out`` and ``--others`` share domes by
 index) and reads it there in later runs, nothing else changed; the cache is the user's
@@ -245,7 +248,8 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
 [--variants] [--validate-choice] [--held-gains] [--profile]
-[--calibrated-on=NAME,...] [--then-fit] [--calibration-cache=DIR] [--held-out|--others] [--only=NAMES]
+[--calibrated-on=NAME,...] [--then-fit] [--calibrated-spread=S]
+[--calibration-cache=DIR] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
 
@@ -1007,6 +1011,8 @@ def main() -> None:
             lightpos.POLISH = int(a.split("=", 1)[1])
         if a.startswith("--polish-margin="):  # kept only where the misfit falls by more (POLISH_MARGIN)
             lightpos.POLISH_MARGIN = float(a.split("=", 1)[1])
+        if a.startswith("--calibrated-spread="):  # a calibration's places as a prior (CALIBRATED_SPREAD_MM)
+            lightpos.CALIBRATED_SPREAD_MM = float(a.split("=", 1)[1])
         if a.startswith("--place-prior="):  # the rig file's places as a prior, S mm per axis (PLACE_SPREAD_MM)
             lightpos.PLACE_SPREAD_MM = float(a.split("=", 1)[1])
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)

@@ -1069,3 +1069,57 @@ def test_the_roughness_search_polishes_another_valley_back_to_the_truth(monkeypa
     assert float(misfit(polished).max()) < 1e-3
     monkeypatch.setattr(lightpos, "POLISH_MARGIN", 1e9)
     assert torch.equal(_reseeded(stuck, misfit, geo, y, wt, polish=5), grid)
+
+
+def _calibrated(off_mm: float):
+    """Noise-free photos of a paper under the LEDs moved by ``_offsets`` with ``_gains``,
+    given a calibration with those scales and places, light 5's ``off_mm`` off along x."""
+    offsets = _offsets()
+    maps, gains = generate("paper", 32, 1), _gains()
+    photos = _photos(maps, offsets, gains, noise=0.0)
+    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
+    cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES)
+    places = _true_lights(offsets).position.clone()
+    places[5, 0] += off_mm
+    cal = {
+        "format": "matscan-calibration/1",
+        "light_scales": {str(k): gains[k].tolist() for k in range(24)},
+        "light_positions_mm": {str(k): places[k].tolist() for k in range(24)},
+    }
+    return apply_calibration(replace(cap, calibration=cal)), _true_lights(offsets)
+
+
+@pytest.mark.parametrize("spread", [0.0, 1e-3])
+def test_a_calibrations_places_are_a_prior_where_asked(monkeypatch, spread):
+    """Fitted from a calibration whose light 5 is 3 mm off, the places move that light
+    toward the truth without a prior; with ``CALIBRATED_SPREAD_MM`` 0.001 mm (a curvature
+    of a million per mm² about the calibration's places) none moves by 0.01 mm, and the
+    record says which prior."""
+    given, true = _calibrated(3.0)
+    monkeypatch.setattr(lightpos, "CALIBRATED_SPREAD_MM", spread)
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
+    lights, _, record, _ = estimate_positions(given, torch.ones(24, 3), cfg, level=False)
+    moved = (lights.position - given.lights.position).norm(dim=1)
+    if spread == 0:
+        assert "place_spread_mm" not in record
+        before, after = (float((p[5] - true.position[5]).norm()) for p in (given.lights.position, lights.position))
+        assert after < before - 1.0
+    else:
+        assert record["place_spread_mm"] == spread and float(moved.max()) < 0.01
+
+
+@pytest.mark.parametrize("spread", [0.0, 0.5])
+def test_right_intensities_keep_a_calibrations_places_unless_asked(monkeypatch, spread):
+    """A calibration with the LEDs' true scales and places: the intensities' estimate is
+    refused as no better. Off (``CALIBRATED_SPREAD_MM`` 0) the places are held where the
+    calibration put them, with a warning that says so; on, they are fitted from there."""
+    given, _ = _calibrated(0.0)
+    monkeypatch.setattr(lightpos, "CALIBRATED_SPREAD_MM", spread)
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
+    res = reconstruct_capture(given, cfg)
+    assert res.self_calibration["updated"] is False and "rejected" in res.self_calibration
+    if spread == 0:
+        assert res.lights is None and "positions" not in res.self_calibration
+        assert sum("the calibration's positions are kept" in w for w in res.warnings) == 1
+    else:
+        assert res.lights is not None and res.self_calibration["positions"]["place_spread_mm"] == spread

@@ -396,14 +396,20 @@ def reconstruct_capture(
         t0 = time.perf_counter()
         gains, record = estimate_gains(capture, cfg)
         lights, notes, held = None, [], False
-        if cfg.self_calibrate_positions and not record["updated"]:
+        # where a calibration placed the lights and its intensities were right already (the
+        # estimate refused as no better), the places are fitted from its all the same with
+        # lightpos.CALIBRATED_SPREAD_MM (off)
+        from matscan.reconstruct import lightpos
+
+        placed = "light_positions_mm" in (capture.calibration or {})
+        refit = placed and "rejected" in record and lightpos.CALIBRATED_SPREAD_MM > 0
+        if cfg.self_calibrate_positions and not record["updated"] and not refit:
             from matscan.reconstruct.lightpos import estimate_held_gains
 
             gains, record["held_gains"] = estimate_held_gains(
                 capture, gains, cfg, progress, record["convention"] == "level sample"
             )
             held = True
-            placed = "light_positions_mm" in (capture.calibration or {})
             why = (
                 "the intensities estimated from the photos re-render them no better than the capture's own"
                 if "rejected" in record

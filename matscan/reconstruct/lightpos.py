@@ -315,6 +315,17 @@ _ENDS_BY = ("misfit", "nearest")
 #: −0.11), and from the rig file the knit's lights came to 4.6 mm, still relit below its
 #: places held (docs/rti-record.md, "what it is not").
 PLACE_SPREAD_MM = 0.0
+#: Where the capture's calibration places the near lights (``light_positions_mm``: another
+#: capture's self-calibration, or several merged, ``calibrate --merge``), how far (mm, one
+#: standard deviation per axis) those places are taken to be from the LEDs': the prior
+#: ``PLACE_SPREAD_MM`` is for the rig file's, about the calibration's places instead; and
+#: where the intensities were right already (their estimate refused as no better) the
+#: places are fitted all the same (0: off, the calibration's places held there, and with
+#: their estimate kept, fitted without a prior). Off until a rule holds: piloted on draw
+#: 1 of bench/nearcal.py (``--calibrated-on=paper,brick,leather,plastic --then-fit
+#: --calibrated-spread=S``, docs/rti.md "A dome calibrated once"), 0.3 mm brought a
+#: photographed gravel only from 1.11 to 0.93 dB below its ideal (its own fit: 0.02).
+CALIBRATED_SPREAD_MM = 0.0
 _PRIORS = ("prior_diffuse", "prior_specular", "prior_roughness", "prior_normal")
 #: With ``SECOND_ORDER``, each pixel's numbers spread at most as if uniform over their
 #: physical range (ρ and F0 in [0, 1], roughness in [0.02, 1], the slopes within ±√3,
@@ -555,6 +566,7 @@ class _Photos:
     y: Tensor
     valid: Tensor
     level: bool = False
+    spread: float = 0.0  # the near lights' places' prior about the start (mm per axis; 0: none)
 
 
 @dataclass(frozen=True)
@@ -788,10 +800,10 @@ def _solve(
         prior = (hold * (th - start) ** 2).sum(0)
         return (ROBUST**2 * torch.log1p(residual2(th, geo) / ROBUST**2)).sum((0, 1)) + prior
 
-    origin, place_weight = pos.clone(), (PLACE_SPREAD_MM**-2 if PLACE_SPREAD_MM > 0 else 0.0) * photos.near.to(F64)
+    origin, place_weight = pos.clone(), (photos.spread**-2 if photos.spread > 0 else 0.0) * photos.near.to(F64)
 
     def place_prior(pos: Tensor) -> float:
-        """−2 log of the places' prior (``PLACE_SPREAD_MM``), up to a constant."""
+        """−2 log of the places' prior (``photos.spread``), up to a constant."""
         return float((place_weight[:, None] * (pos - origin) ** 2).sum())
 
     cost = float(pixel_misfit(th, geometry(pos, lg)).sum()) + place_prior(pos)
@@ -805,7 +817,7 @@ def _solve(
         irls = wt / (1 + residual2(th, at) / ROBUST**2)  # Cauchy's weights, reweighted each step
         a, gp, b, c, gl = normal_equations(th, placed, aims, lg.exp(), pts, irls, y)
         a, gp = a + torch.diag(hold[:, 0]), gp - (hold * (th - start)).T
-        if PLACE_SPREAD_MM > 0:  # the places' prior: its curvature, and the gradient of −½ it
+        if photos.spread > 0:  # the places' prior: its curvature, and the gradient of −½ it
             c[: 3 * n, : 3 * n] += torch.diag(place_weight.repeat_interleave(3))
             gl[: 3 * n] -= (place_weight[:, None] * (pos - origin)).reshape(-1)
         if extra:
@@ -1028,6 +1040,7 @@ def fit_positions(
     level: bool | None = None,
     alternate: tuple[MapSet, Tensor] | None = None,
     hold_places: bool = False,
+    place_spread_mm: float | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Positions (N, 3, mm) of every photo's light and RGB gains (N, 3) fitted jointly with
     the maps by ``iterations`` Gauss–Newton steps (when None, ``SHARED_ITERATIONS`` with a
@@ -1050,7 +1063,9 @@ def fit_positions(
     first start's scan, else its own; no roughness searched). Of the starts' ends, the one
     ``ENDS_BY`` says is kept: by default the one that fits the photos best. With
     ``hold_places`` every light stays where the capture puts it: only the gains are fitted
-    with the maps (:func:`estimate_held_gains`)."""
+    with the maps (:func:`estimate_held_gains`). ``place_spread_mm``: a Gaussian prior of
+    that many mm per axis on the near lights' places about where the capture puts them
+    (``PLACE_SPREAD_MM`` when None; 0: none)."""
     n = len(capture.files)
     lights = _double(capture.lights)
     near = lights.w > 0.5
@@ -1070,6 +1085,7 @@ def fit_positions(
         y=capture.linear(list(range(n))).to(F64).reshape(n, 3, -1),
         valid=(~capture.saturation(list(range(n)))).to(F64).reshape(n, 1, -1).expand(n, 3, -1),
         level=selfcal.LEVEL if level is None else level,
+        spread=PLACE_SPREAD_MM if place_spread_mm is None else place_spread_mm,
     )
     th = _numbers(maps)
     pairs = BIAS_PAIRS if bias_pairs is None else bias_pairs
@@ -1343,6 +1359,8 @@ def estimate_positions(
     level = selfcal.fits_gradient(capture, cfg) if level is None else level
     steps = SHARED_ITERATIONS if shared else ITERATIONS
     total = steps * (1 + 2 * BIAS_PAIRS + (1 if shared else 0) + (alternate is not None))  # the other starts
+    placed = "light_positions_mm" in (capture.calibration or {})
+    spread = CALIBRATED_SPREAD_MM if placed and CALIBRATED_SPREAD_MM > 0 else None  # about the calibration's
     tilt = selfcal.median_slope(start.maps)  # the start's, which the fit holds under the level convention
     if level and LEVEL_START:
         start = replace(start, maps=selfcal.levelled(start.maps))
@@ -1358,8 +1376,11 @@ def estimate_positions(
             shared_f0=shared,
             level=level,
             alternate=alternate,
+            place_spread_mm=spread,
         )
     record["reduced_by"] = factor
+    if spread is not None:
+        record["place_spread_mm"] = spread
     if level:  # the start's median slope (x, y), and whether the fit started with it removed
         record["start_slope"] = {"median": [round(float(v), 5) for v in tilt], "removed": LEVEL_START}
     if level and LEVEL_TURNS:  # the fitted dome turned until the maps at it lie level
