@@ -120,7 +120,7 @@ LEDs instead (their own camera noise; ``--self-calibrate-positions`` as it ships
 fits the material's photos with the lights and gains found there, as ``reconstruct
 --calibration`` fits a later capture with an earlier one's ``self_calibration.json``;
 with several NAMEs, with their calibrations merged as ``calibrate --merge`` merges them
-(those whose intensities could not be read left out). It prints the calibration's
+(those whose intensities could not be read left out, and any it finds astray). It prints the calibration's
 position error, the ideal dome's novel-light PSNR and the calibration's, and the
 difference (docs/rti.md, "A dome calibrated once"). ``--then-fit`` self-calibrates
 each material from there too (``reconstruct --calibration FILE
@@ -920,7 +920,8 @@ def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, ga
         said += f"misfit {fitted.get('misfit_per_value', {}).get('end')}"
     else:
         each = ", ".join(f"{float((f[0].position - true.position).norm(dim=1).mean()):.2f}" for f in read)
-        said = f"{len(read)} of {len(fits)} merged (their own errors {each} mm; spread {m.position_spread_mm:.2f})"
+        said = f"{m.files} of {len(fits)} merged (their own errors {each} mm; spread {m.position_spread_mm:.2f}"
+        said += f"; {len(m.left_out)} left out as astray)" if m.left_out else ")"
     given = apply_calibration(replace(cap, calibration=m.document))
     ideal = reconstruct_capture(replace(cap, lights=true, correction=Correction(None, gains, (None,) * 24)), cfg)
     runs = [reconstruct_capture(given, cfg)]

@@ -199,7 +199,13 @@ def _merge_calibrations(args: argparse.Namespace) -> str:
     from matscan.calibrate import merge
 
     m = merge(args.out, args.merge, overwrite=args.overwrite)
-    parts = [f"{m.files} calibrations merged"]
+    for name, mm in m.left_out.items():
+        print(
+            f"matscan: warning: {name}: left out, its lights lie {mm:.1f} mm (RMS) from the files' median places; "
+            "its capture's self-calibration may have gone astray",
+            file=sys.stderr,
+        )
+    parts = [f"{m.files} calibrations merged" + (f" ({len(m.left_out)} left out)" if m.left_out else "")]
     if m.positions:
         counts = sorted(set(m.positions.values()))
         each = f"{counts[0]}" if len(counts) == 1 else f"{counts[0]} to {counts[-1]}"

@@ -397,6 +397,26 @@ def test_merged_calibrations_are_the_mean_places_and_geometric_mean_scales():
     assert m.scale_spread == pytest.approx(math.sqrt(sum(per_light0 + per_light1) / 5 / 3))
 
 
+def test_a_calibration_whose_places_went_astray_is_left_out_of_the_merge():
+    """Four calibrations of two lights: three within 1 mm of each other, one 8 mm off
+    along x (a capture whose fit went astray): that one is left out, places and scales,
+    and named with its distance from the per-light median places (8 mm, worked out by
+    hand); the merge is the mean of the other three. Three that scatter alike keep all."""
+    from matscan.calibrate import merge_calibrations
+
+    def doc(dx: float, scale: float) -> dict:
+        places = {"0": [100.0 + dx, 0.0, 150.0], "1": [0.0, 100.0, 150.0 + dx]}
+        return {"format": "matscan-calibration/1", "light_positions_mm": places, "light_scales": {"0": scale}}
+
+    m = merge_calibrations([doc(0.0, 1.0), doc(0.5, 1.0), doc(1.0, 1.0), doc(8.5, 9.0)], list("abcd"))
+    # the median places are dx = 0.75 for both lights; d lies 7.75 mm off on each: RMS 7.75
+    assert m.left_out == {"d": 7.75} and m.files == 3
+    assert m.document["light_positions_mm"] == {"0": [100.5, 0.0, 150.0], "1": [0.0, 100.0, 150.5]}
+    assert m.document["light_scales"] == {"0": [1.0, 1.0, 1.0]}
+    kept = merge_calibrations([doc(0.0, 1.0), doc(1.0, 1.0), doc(2.0, 1.0)], list("abc"))
+    assert kept.left_out == {} and kept.files == 3
+
+
 @pytest.mark.parametrize(
     ("change", "said"),
     [

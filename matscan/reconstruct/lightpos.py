@@ -321,10 +321,12 @@ PLACE_SPREAD_MM = 0.0
 #: ``PLACE_SPREAD_MM`` is for the rig file's, about the calibration's places instead; and
 #: where the intensities were right already (their estimate refused as no better) the
 #: places are fitted all the same (0: off, the calibration's places held there, and with
-#: their estimate kept, fitted without a prior). Off until a rule holds: piloted on draw
-#: 1 of bench/nearcal.py (``--calibrated-on=paper,brick,leather,plastic --then-fit
-#: --calibrated-spread=S``, docs/rti.md "A dome calibrated once"), 0.3 mm brought a
-#: photographed gravel only from 1.11 to 0.93 dB below its ideal (its own fit: 0.02).
+#: their estimate kept, fitted without a prior). Off: piloted on draw 1 of
+#: bench/nearcal.py from four captures' calibrations merged (``--calibrated-on=paper,
+#: brick,leather,plastic --then-fit --calibrated-spread=S``; docs/rti.md "A dome calibrated
+#: once"), no spread suited both a photographed brick and a gravel, dB below the ideal
+#: dome: 0.3 mm 0.10 and 0.93, 0.5 mm 0.26 and 0.74, 1 mm 0.90 and 0.35 (the calibration
+#: alone 0.03 and 1.11; their own fits 0.69 and 0.02).
 CALIBRATED_SPREAD_MM = 0.0
 _PRIORS = ("prior_diffuse", "prior_specular", "prior_roughness", "prior_normal")
 #: With ``SECOND_ORDER``, each pixel's numbers spread at most as if uniform over their
