@@ -880,9 +880,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--calibration",
         default=None,
         metavar="FILE",
-        help="a calibration file to read instead of the one the capture names: another capture's "
-        "self_calibration.json, where a cooperative sample (paper, card) placed the same dome's lights "
-        '(docs/rti.md, "A dome calibrated once"); the capture is not changed',
+        help="a calibration file to read instead of the one the capture names: the places and scales of the "
+        "same dome merged from other captures' self_calibration.json (calibrate --merge), for a sample whose "
+        'photos cannot place the lights (docs/rti.md, "A dome calibrated once"); the capture is not changed',
     )
     p.add_argument(
         "--validate",

@@ -397,8 +397,8 @@ def reconstruct_capture(
         gains, record = estimate_gains(capture, cfg)
         lights, notes, held = None, [], False
         # where a calibration placed the lights and its intensities were right already (the
-        # estimate refused as no better), the places are fitted from its all the same with
-        # lightpos.CALIBRATED_SPREAD_MM (off)
+        # estimate refused as no better), the places are fitted from the calibration's all
+        # the same where lightpos.CALIBRATED_SPREAD_MM is on (off by default)
         from matscan.reconstruct import lightpos
 
         placed = "light_positions_mm" in (capture.calibration or {})
