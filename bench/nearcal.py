@@ -126,7 +126,9 @@ difference (docs/rti.md, "A dome calibrated once"). ``--then-fit`` self-calibrat
 each material from there too (``reconstruct --calibration FILE
 --self-calibrate-positions``: the joint fit starts at the calibration's places and
 scales, or holds them where the material's intensities cannot be read) and prints that
-fit's position error, PSNR and shortfall after; ``--calibrated-spread=S`` fits them from
+fit's position error, PSNR and shortfall after ("(held)": the places held and the
+intensities fitted with them; "(kept)": the calibration's intensities and places kept as
+they are; "refused": the intensities' estimate was refused as no better); ``--calibrated-spread=S`` fits them from
 there with a prior of S mm per axis about the calibration's places, and fits them even
 where the intensities were right already (``lightpos.CALIBRATED_SPREAD_MM``; without it
 the places are held there). ``--calibration-cache=DIR``
@@ -934,7 +936,9 @@ def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, ga
     if fit:
         placed = runs[1].lights.position if runs[1].lights is not None else given.lights.position
         line += f"   then fitted {float((placed - true.position).norm(dim=1).mean()):5.2f} mm {psnr[2]:7.2f} "
-        line += f"{psnr[0] - psnr[2]:7.2f}" + ("" if runs[1].lights is not None else " (held)")
+        record = runs[1].self_calibration
+        kept = "" if runs[1].lights is not None else " (held)" if "held_gains" in record else " (kept)"
+        line += f"{psnr[0] - psnr[2]:7.2f}" + kept + (" refused" if "rejected" in record else "")
     print(f"{line}   {said}", flush=True)
 
 

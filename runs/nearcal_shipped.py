@@ -34,22 +34,34 @@ def rows(paths, by):
     return out
 
 
-for draw in sys.argv[1:] or ["1", "2", "0"]:
+def shipped(draw: str) -> dict:
+    """{material: row} as shipped on this draw: ``rows`` of nearcal-base/, the unread three's
+    "final" from nearcal-held/'s held gains."""
     base = rows(sorted(HERE.glob(f"nearcal-base/s128-d{draw}-*.log")), "by base")
     held = rows(sorted(HERE.glob(f"nearcal-held/s128-d{draw}-*.log")), "held gains")
     for k, r in base.items():
         if not r["read"]:  # the unread three: as shipped, the held gains
             r["final"] = held[k]["final"]
-    mean = {k: statistics.mean(r[k] for r in base.values()) for k in ("ideal", "nominal", "gains", "final")}
-    below = {k: r["ideal"] - r["final"] for k, r in base.items()}
-    read = [r["mm"] for r in base.values() if r["read"]]
-    print(
-        f"draw {draw}: {len(base)} materials, mean PSNR ideal {mean['ideal']:.2f}, rig file {mean['nominal']:.2f}, "
-        f"intensities alone {mean['gains']:.2f}, shipped {mean['final']:.2f} dB; below the ideal "
-        f"{statistics.mean(below.values()):.2f} mean, {statistics.median(below.values()):.2f} median; "
-        f"{sum(v <= 0.5 for v in below.values())} within 0.5 dB; {len(read)} read, lights "
-        f"{statistics.mean(read):.2f} mm off on average"
-    )
-    for k, v in sorted(below.items(), key=lambda kv: -kv[1]):
-        if v > 0.5:
-            print(f"   {k:24s} {v:.2f} dB below{'' if base[k]['read'] else ' (intensities unread)'}")
+    return base
+
+
+def main() -> None:
+    for draw in sys.argv[1:] or ["1", "2", "0"]:
+        base = shipped(draw)
+        mean = {k: statistics.mean(r[k] for r in base.values()) for k in ("ideal", "nominal", "gains", "final")}
+        below = {k: r["ideal"] - r["final"] for k, r in base.items()}
+        read = [r["mm"] for r in base.values() if r["read"]]
+        print(
+            f"draw {draw}: {len(base)} materials, mean PSNR ideal {mean['ideal']:.2f}, rig file {mean['nominal']:.2f}, "
+            f"intensities alone {mean['gains']:.2f}, shipped {mean['final']:.2f} dB; below the ideal "
+            f"{statistics.mean(below.values()):.2f} mean, {statistics.median(below.values()):.2f} median; "
+            f"{sum(v <= 0.5 for v in below.values())} within 0.5 dB; {len(read)} read, lights "
+            f"{statistics.mean(read):.2f} mm off on average"
+        )
+        for k, v in sorted(below.items(), key=lambda kv: -kv[1]):
+            if v > 0.5:
+                print(f"   {k:24s} {v:.2f} dB below{'' if base[k]['read'] else ' (intensities unread)'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -921,6 +921,21 @@ def test_positions_are_kept_where_the_intensities_could_not_be_read():
     assert not any("give --calibration" in w for w in again.warnings)
 
 
+def test_refused_intensities_of_the_rig_file_are_fitted_with_the_lights_held():
+    """The rig file's intensities refused as no better (photos under its exact lights) are
+    fitted with every light held all the same, as a black knit's, whose estimate is refused
+    for being poor rather than its rig file right: only a calibration's are kept as they
+    are."""
+    maps = generate("paper", 32, 1)
+    photos = _photos(maps, torch.zeros(24, 3), torch.ones(24, 3), noise=0.0)
+    sat = torch.zeros_like(photos[:, :1], dtype=torch.bool)
+    cap = Capture(RIG, RIG.field_mm, "linear", photos, sat, tuple(range(24)), RIG.light_set(), FILES)
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
+    res = reconstruct_capture(cap, cfg)
+    assert "rejected" in res.self_calibration and "held_gains" in res.self_calibration
+    assert res.lights is None and not any("intensities are kept" in w for w in res.warnings)
+
+
 def test_the_held_gains_read_the_intensities_with_every_light_where_the_capture_puts_it():
     """Photos under the rig file's places with LEDs ±20% in brightness: with the places
     held the joint fit reads each LED's gain (its overall factor and tilt across the dome
@@ -1111,8 +1126,10 @@ def test_a_calibrations_places_are_a_prior_where_asked(monkeypatch, spread):
 @pytest.mark.parametrize("spread", [0.0, 0.5])
 def test_right_intensities_keep_a_calibrations_places_unless_asked(monkeypatch, spread):
     """A calibration with the LEDs' true scales and places: the intensities' estimate is
-    refused as no better. Off (``CALIBRATED_SPREAD_MM`` 0) the places are held where the
-    calibration put them, with a warning that says so; on, they are fitted from there."""
+    refused as no better. Off (``CALIBRATED_SPREAD_MM`` 0) the calibration's places and
+    scales are kept as they are (no intensities fitted with the lights held), with a
+    warning that says so, so the maps are those of the calibration without
+    self-calibration; on, the places are fitted from there."""
     given, _ = _calibrated(0.0)
     monkeypatch.setattr(lightpos, "CALIBRATED_SPREAD_MM", spread)
     cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True, self_calibrate_positions=True)
@@ -1120,6 +1137,11 @@ def test_right_intensities_keep_a_calibrations_places_unless_asked(monkeypatch, 
     assert res.self_calibration["updated"] is False and "rejected" in res.self_calibration
     if spread == 0:
         assert res.lights is None and "positions" not in res.self_calibration
-        assert sum("the calibration's positions are kept" in w for w in res.warnings) == 1
+        assert "held_gains" not in res.self_calibration and torch.equal(res.light_gains, torch.ones(24, 3))
+        assert sum("the calibration's intensities are kept" in w for w in res.warnings) == 1
+        assert sum("the calibration's positions" in w for w in res.warnings) == 1
+        plain = reconstruct_capture(given, ReconstructConfig(model="none", refine="on"))
+        for k in ("diffuse", "specular", "roughness", "normal"):
+            assert torch.equal(getattr(res.maps, k), getattr(plain.maps, k))
     else:
         assert res.lights is not None and res.self_calibration["positions"]["place_spread_mm"] == spread

@@ -403,7 +403,21 @@ def reconstruct_capture(
 
         placed = "light_positions_mm" in (capture.calibration or {})
         refit = placed and "rejected" in record and lightpos.CALIBRATED_SPREAD_MM > 0
-        if cfg.self_calibrate_positions and not record["updated"] and not refit:
+        scaled = (capture.calibration or {}).get("light_scales", {})
+        calibrated = bool(scaled) and all(k is None or str(k) in scaled for k in capture.light_indices)
+        # a calibration's scales that re-render the photos as well as the estimate are kept as
+        # they are, where the capture's own intensities re-estimated with the lights held cost a
+        # simulated paper and twill 0.10 and 0.14 dB (docs/rti.md, "A dome calibrated once");
+        # the rig file's refused (a knit's: the estimate too poor) are fitted with the lights held
+        kept = calibrated and "rejected" in record and not refit
+        if cfg.self_calibrate_positions and kept:
+            notes.append(
+                "--self-calibrate-positions: the calibration's intensities are kept, and so are "
+                + ("the calibration's positions" if placed else "the rig file's positions")
+                + " (fitted from these photos where the intensities were right already, a simulated brick's lights "
+                "went 1.39 mm astray: docs/rti.md)"
+            )
+        elif cfg.self_calibrate_positions and not record["updated"] and not refit:
             from matscan.reconstruct.lightpos import estimate_held_gains
 
             gains, record["held_gains"] = estimate_held_gains(
@@ -447,8 +461,7 @@ def reconstruct_capture(
         result.light_gains, result.lights, result.self_calibration = gains, lights, record
         result.warnings.extend(notes)
         result.timings["self_calibration_s"] = seconds
-        scaled = (capture.calibration or {}).get("light_scales", {})
-        if scaled and all(k is None or str(k) in scaled for k in capture.light_indices):
+        if calibrated:
             result.warnings.append(
                 "--self-calibrate: the calibration already scales every light; re-estimated from the photos, "
                 "right scales cost up to 0.01 dB on average and 0.08 dB at most on simulated domes (docs/rti.md): "
