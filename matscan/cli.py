@@ -881,9 +881,10 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="FILE",
         help="a calibration file to read instead of the one the capture names: the places and scales of the "
-        "same dome merged from other captures' self_calibration.json (calibrate --merge); with "
-        "--self-calibrate-positions the lights are fitted from there, or kept there where the photos confirm "
-        'or cannot read their intensities (docs/rti.md, "A dome calibrated once"); the capture is not changed',
+        "same dome merged from other captures' self_calibration.json (calibrate --merge), for a sample whose "
+        "photos cannot place the lights; with --self-calibrate-positions the lights are fitted from there, or "
+        'kept there where the photos confirm or cannot read their intensities (docs/rti.md, "A dome calibrated '
+        'once"); the capture is not changed',
     )
     p.add_argument(
         "--validate",
