@@ -114,28 +114,34 @@ model, which its starts share; the first fit's is the profiles').
 the camera's noise: the RMS error (mm) of any unbiased estimator that fits positions,
 gains and maps from these photos, alone and with the rig file's ±5 mm as a prior.
 
-``--calibrated-on=NAME[,NAME...]`` (with ``--joint``; each NAME one of the four: paper,
-brick, leather, plastic) calibrates each material's dome on NAME's photos under the same
-LEDs instead (their own camera noise; ``--self-calibrate-positions`` as it ships), and
-fits the material's photos with the lights and gains found there, as ``reconstruct
---calibration`` fits a later capture with an earlier one's ``self_calibration.json``;
-with several NAMEs, with their calibrations merged as ``calibrate --merge`` merges them
-(those whose intensities could not be read left out, and any it finds astray). It prints the calibration's
-position error, the ideal dome's novel-light PSNR and the calibration's, and the
-difference (docs/rti.md, "A dome calibrated once"). ``--then-fit`` self-calibrates
-each material from there too (``reconstruct --calibration FILE
---self-calibrate-positions``: the joint fit starts at the calibration's places and
-scales, or holds them where the material's intensities cannot be read) and prints that
-fit's position error, PSNR and shortfall after ("(held)": the places held and the
-intensities fitted with them; "(kept)": the calibration's intensities and places kept as
-they are; "refused": the intensities' estimate was refused as no better); ``--calibrated-spread=S`` fits them from
-there with a prior of S mm per axis about the calibration's places, and fits them even
-where the intensities were right already (``lightpos.CALIBRATED_SPREAD_MM``; without it
-the places are held there). ``--calibration-cache=DIR``
-keeps each calibration in DIR (by NAME, side, seed and the material's index, which is
-what the dome's draw depends on: the four, ``--held-out`` and ``--others`` share domes by
-index) and reads it there in later runs, nothing else changed; the cache is the user's
-to clear when the code changes.
+``--calibrated-on=NAME[,NAME...]`` (with ``--joint``; each NAME the start of a name in the
+bench's lists, :func:`listed`: paper, brick, leather, plastic, woven_plain, ...)
+calibrates each material's dome on NAME's photos under the same LEDs instead (their own
+camera noise; ``--self-calibrate-positions`` as it ships), and fits the material's photos
+with the lights and gains found there, as ``reconstruct --calibration`` fits a later
+capture with an earlier one's ``self_calibration.json``; with several NAMEs, with their
+calibrations merged as ``calibrate --merge`` merges them (those whose intensities could
+not be read left out, and any it finds astray). It prints the calibration's position
+error, the ideal dome's novel-light PSNR and the calibration's, and the difference
+(docs/rti.md, "A dome calibrated once"). ``--then-fit`` self-calibrates each material from
+there too (``reconstruct --calibration FILE --self-calibrate-positions``: the joint fit
+starts at the calibration's places and scales, or holds them where the material's
+intensities cannot be read) and prints that fit's position error, PSNR and shortfall after
+("(held)": the places held and the intensities fitted with them; "(kept)": the
+calibration's intensities and places kept as they are; "refused": the intensities'
+estimate was refused as no better); ``--calibrated-spread=S`` fits them from there with a
+prior of S mm per axis about the calibration's places, and fits them even where the
+intensities were right already (``lightpos.CALIBRATED_SPREAD_MM``; without it the places
+are held there); ``--calibrated-common`` fits them from there too where the intensities
+were right already, the lights moved only together (one shift and the dome's scale:
+``lightpos.CALIBRATED_COMMON`` "confirmed"; ``=always``: every material so).
+``--merge-weighted`` merges the calibrations' places weighted
+(``calibrate.MERGE_WEIGHTED``). ``--calibrations-only`` prints instead each calibration's
+position error and mean radial shift (in brackets; + too far out) and the merge's, and
+fits nothing. ``--calibration-cache=DIR`` keeps each calibration in DIR (by NAME, side,
+seed and the material's index, which is what the dome's draw depends on: the four,
+``--held-out`` and ``--others`` share domes by index) and reads it there in later runs,
+nothing else changed; the cache is the user's to clear when the code changes.
 
 ``--oracle-pair`` prints instead the antithetic pair's bias (as ``--pairs=1 --pairs-radial``
 measures it at the fit's end) measured at the truth: the replicas rendered from the true
@@ -250,7 +256,8 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 [--true-start] [--start-prior=K] [--start-roughness-prior=K] [--weak-start=K] [--weak-margin=M] [--weak-own]
 [--ends-by=A] [--ends] [--place-prior=S] [--polish=K] [--polish-margin=M]
 [--variants] [--validate-choice] [--held-gains] [--profile]
-[--calibrated-on=NAME,...] [--then-fit] [--calibrated-spread=S]
+[--calibrated-on=NAME,...] [--then-fit] [--calibrated-spread=S] [--calibrated-common[=always]] [--merge-weighted]
+[--calibrations-only]
 [--calibration-cache=DIR] [--held-out|--others] [--only=NAMES]
 [SIZE]   (default 128)
 """
@@ -258,11 +265,13 @@ Run by hand: .venv/bin/python bench/nearcal.py [--joint|--bound|--at-bound=R|--f
 from __future__ import annotations
 
 import contextlib
+import importlib
 import json
 import math
 import pathlib
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import torch
@@ -890,7 +899,16 @@ def calibration_of(cap: Capture, cfg, true: LightSet, gains, rig, other, seed: i
     return lights, g2, record, fitted
 
 
-def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, others, seed, caches, fit):
+def off_by(pos: torch.Tensor, true: torch.Tensor) -> str:
+    """Places' mean distance from the true ones and their mean shift along the true
+    places' directions from the origin (the dome's scale: + too far; mm)."""
+    u = true / true.norm(dim=1, keepdim=True)
+    return f"{float((pos - true).norm(dim=1).mean()):.2f} ({float(((pos - true) * u).sum(1).mean()):+.2f})"
+
+
+def calibrated_on(
+    name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, gains, rig, others, seed, caches, fit, alone=False
+):
     """This material's photos fitted with the dome calibrated on the photos of ``others``
     (``calibration_of`` each; more than one merged by ``matscan.calibrate.merge_calibrations``,
     those whose intensities could not be read left out, as ``reconstruct`` warns of
@@ -905,7 +923,8 @@ def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, ga
     from matscan.calibrate import apply_calibration, merge_calibrations
 
     fits = [calibration_of(cap, cfg, true, gains, rig, o, seed, c) for o, c in zip(others, caches, strict=True)]
-    read = [f for f in fits if f[2]["updated"]] or fits[:1]
+    read = [(n, f) for (n, _), f in zip(others, fits, strict=True) if f[2]["updated"]] or [(others[0][0], fits[0])]
+    names, read = [n for n, _ in read], [f for _, f in read]
     docs = [
         {
             "format": "matscan-calibration/1",
@@ -914,7 +933,15 @@ def calibrated_on(name: str, cap: Capture, cfg, maps: MapSet, true: LightSet, ga
         }
         for lt, g, _, _ in read
     ]
-    m = merge_calibrations(docs, [f"calibration {k}" for k in range(len(docs))])
+    m = merge_calibrations(docs, names)
+    if alone:  # --calibrations-only: each calibration's places and the merge's, no fit
+        merged = torch.tensor([m.document["light_positions_mm"][str(k)] for k in range(len(gains))])
+        each = "  ".join(f"{n}: {off_by(f[0].position, true.position)}" for (n, _), f in zip(others, fits, strict=True))
+        unread = [n for (n, _), f in zip(others, fits, strict=True) if not f[2]["updated"]]
+        said = f"   unread: {', '.join(unread)}" if unread else ""
+        said += f"   astray: {', '.join(m.left_out)}" if m.left_out else ""
+        print(f"{name:16s} merged {off_by(merged.to(true.position.dtype), true.position)}   {each}{said}", flush=True)
+        return
     if len(others) == 1:
         _, _, record, fitted = fits[0]
         turns = len([t for t in fitted.get("level_turns", []) if t.get("made")])
@@ -949,6 +976,31 @@ def report(name: str, pos: torch.Tensor, true: LightSet, maps: MapSet, rig, fits
         f"{name:16s} {float(err.mean()):12.2f} {float(err.max()):6.2f}   " + " ".join(f"{v:7.2f}" for v in psnr),
         flush=True,
     )
+
+
+def listed(size: int) -> dict[str, list[tuple[str, Callable[[], MapSet]]]]:
+    """The bench's three lists of materials at ``size``², each entry a name and a function
+    that makes its maps: "main" (the four), "held-out" (bench/selfcal.py's 13, on which
+    ``lightpos.OUTLIER`` and ``ROBUST`` came after two failed) and "others" (the 8 of
+    bench/selfcal.py's 12 not among the four). The lists share domes by index."""
+    held = ("woven_twill", "woven_satin", "leather_embossed", "weave_heavy", "corrugated")
+    held += ("metallic_print", "worn", "varnished_wood", "dark_glossy", "glossy_coat")
+
+    def procedural(family: str, seed: int) -> tuple[str, Callable[[], MapSet]]:
+        return family, lambda: generate(family, size, seed)
+
+    def photo(name: str) -> tuple[str, Callable[[], MapSet]]:
+        return f"{name} (photo)", lambda: photo_material(name, size)
+
+    def artist(name: str) -> tuple[str, Callable[[], MapSet]]:
+        return f"{name} (artist)", lambda: artist_material(name, size)
+
+    return {
+        "main": [procedural("paper", 1), photo("brick"), procedural("leather", 1), procedural("plastic", 1)],
+        "held-out": [procedural(f, 2) for f in held] + [photo("grass"), artist("embossed-coins"), artist("worn-metal")],
+        "others": [procedural(f, 1) for f in ("woven_plain", "knit", "painted", "metal_brushed")]
+        + [photo("gravel"), artist("foil-print"), artist("black-leather"), artist("lacquer")],
+    }
 
 
 def main() -> None:
@@ -1018,6 +1070,10 @@ def main() -> None:
             lightpos.POLISH_MARGIN = float(a.split("=", 1)[1])
         if a.startswith("--calibrated-spread="):  # a calibration's places as a prior (CALIBRATED_SPREAD_MM)
             lightpos.CALIBRATED_SPREAD_MM = float(a.split("=", 1)[1])
+        if a == "--merge-weighted":  # the calibrations' places merged weighted (calibrate.MERGE_WEIGHTED)
+            importlib.import_module("matscan.calibrate").MERGE_WEIGHTED = True
+        if a.startswith("--calibrated-common"):  # a calibration's places moved only together (CALIBRATED_COMMON)
+            lightpos.CALIBRATED_COMMON = a.split("=", 1)[1] if "=" in a else "confirmed"
         if a.startswith("--place-prior="):  # the rig file's places as a prior, S mm per axis (PLACE_SPREAD_MM)
             lightpos.PLACE_SPREAD_MM = float(a.split("=", 1)[1])
         if a == "--level":  # the sample level, the gains' gradient fitted (selfcal.LEVEL)
@@ -1032,24 +1088,17 @@ def main() -> None:
     only = [n for a in sys.argv[1:] if a.startswith("--only=") for n in a.split("=", 1)[1].split(",")]
     hybrid = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--hybrid-pair=")), None)
     size = int(args[0]) if args else 128
-    materials = [("paper", generate("paper", size, 1)), ("brick (photo)", photo_material("brick", size))]
-    materials += [("leather", generate("leather", size, 1)), ("plastic", generate("plastic", size, 1))]
-    main_four = materials
-    if "--held-out" in sys.argv:  # bench/selfcal.py's 13 (lightpos.OUTLIER and ROBUST came after two failed)
-        families = ("woven_twill", "woven_satin", "leather_embossed", "weave_heavy", "corrugated")
-        families += ("metallic_print", "worn", "varnished_wood", "dark_glossy", "glossy_coat")
-        materials = [(f, generate(f, size, 2)) for f in families]
-        materials += [("grass (photo)", photo_material("grass", size))]
-        materials += [(f"{n} (artist)", artist_material(n, size)) for n in ("embossed-coins", "worn-metal")]
-    if "--others" in sys.argv:  # the 8 of bench/selfcal.py's 12 not among the four
-        materials = [(f, generate(f, size, 1)) for f in ("woven_plain", "knit", "painted", "metal_brushed")]
-        materials += [("gravel (photo)", photo_material("gravel", size))]
-        materials += [(f"{n} (artist)", artist_material(n, size)) for n in ("foil-print", "black-leather", "lacquer")]
+    lists = listed(size)
+    which = "held-out" if "--held-out" in sys.argv else "others" if "--others" in sys.argv else "main"
+    materials = [(n, make()) for n, make in lists[which]]
     named = next((a.split("=", 1)[1].split(",") for a in sys.argv[1:] if a.startswith("--calibrated-on=")), [])
-    on = [next(((n, m) for n, m in main_four if n.startswith(k)), None) for k in named] or None
+    every = [entry for k in ("main", "held-out", "others") for entry in lists[k]]
+    found = [next(((n, make) for n, make in every if n.startswith(k)), None) for k in named]
+    if None in found:
+        unknown = [k for k, f in zip(named, found, strict=True) if f is None]
+        raise SystemExit(f"--calibrated-on: {', '.join(unknown)}: not among the bench's materials")
+    on = [(n, make()) for n, make in found] or None
     cached = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("--calibration-cache=")), None)
-    if on and None in on:
-        raise SystemExit(f"--calibrated-on={','.join(named)}: each must be one of paper, brick, leather, plastic")
     cfg = ReconstructConfig(model="none", refine="on", solver="lm")
     if "--choose" in sys.argv:  # both conventions, the better re-rendering kept (led_gradient "choose")
         cfg = replace(cfg, self_calibrate=True, led_gradient="choose")
@@ -1165,7 +1214,8 @@ def main() -> None:
             if cached:  # the bench's lists share a dome by index: one calibration per index and draw
                 files = [pathlib.Path(cached) / f"{k}-{size}-seed{draw // 1000}-{i}.pt" for k in named]
             fit = "--then-fit" in sys.argv
-            calibrated_on(name, cap, cfg, maps, true, gains, rig, on, 700 + i + draw, files, fit)
+            alone = "--calibrations-only" in sys.argv
+            calibrated_on(name, cap, cfg, maps, true, gains, rig, on, 700 + i + draw, files, fit, alone)
             continue
         if at is not None:  # what an estimator at the bound would relight at
             at_bound(name, cap, cfg, maps, true, gains, rig, at, seed=300 + i + draw)

@@ -1,10 +1,16 @@
 """How far off the four's calibrations put each simulated dome's lights, alone and merged:
-``calibrate --merge``'s mean (with its astray rule) and, for comparison, each light's
-median of the four. From nearcal-calibrated/calibrations-s128.json (each calibration the
-bench's ``--calibration-cache`` kept, by material, draw and dome index: its places, gains
-and whether its intensities were read) and the domes' true places, drawn as
-bench/nearcal.py draws them. ``python runs/nearcal_merge.py`` from the repository root."""
+``calibrate --merge``'s mean (with its astray rule), for comparison each light's median
+of the four, and the weighted merge (``calibrate.MERGE_WEIGHTED``); each calibration's
+mean radial shift in brackets (the dome's scale: + too far out), and each merge's error
+once its own shift and scale are fitted out against the truth (what a fit of those four
+numbers from a capture's photos could at best remove: ``lightpos.CALIBRATED_COMMON``).
+From nearcal-calibrated/calibrations-s128.json (each calibration the bench's
+``--calibration-cache`` kept, by material, draw and dome index: its places, gains and
+whether its intensities were read) and the domes' true places, drawn as
+bench/nearcal.py draws them. ``python runs/nearcal_merge.py`` from the repository root;
+``--from-cache=DIR`` first adds to the file every calibration in the bench's cache DIR."""
 
+import importlib
 import json
 import statistics
 import sys
@@ -16,9 +22,9 @@ HERE = Path(__file__).parent
 sys.path.insert(0, str(HERE.parent / "bench"))
 from nearcal import moved  # noqa: E402
 
-from matscan.calibrate import merge_calibrations  # noqa: E402
 from matscan.rig import builtin_rig  # noqa: E402
 
+calibrate = importlib.import_module("matscan.calibrate")  # the package's calibrate is the function
 FOUR = ("paper", "brick", "leather", "plastic")
 
 
@@ -27,35 +33,84 @@ def error(places: torch.Tensor, true: torch.Tensor) -> float:
     return float((places.to(true.dtype) - true).norm(dim=1).mean())
 
 
+def radial(places: torch.Tensor, true: torch.Tensor) -> float:
+    """The lights' mean shift along their true directions from the origin (mm)."""
+    u = true / true.norm(dim=1, keepdim=True)
+    return float(((places.to(true.dtype) - true) * u).sum(1).mean())
+
+
+def common_removed(places: torch.Tensor, true: torch.Tensor) -> float:
+    """:func:`error` once the places' least-squares shift and scale about the truth are taken out."""
+    e = (places.to(true.dtype) - true).reshape(-1, 1)
+    d = true / true.norm(dim=1, keepdim=True)
+    moves = torch.stack(
+        [torch.eye(3, dtype=true.dtype)[j].expand_as(true).reshape(-1) for j in range(3)] + [d.reshape(-1)], 1
+    )
+    return float((e - moves @ torch.linalg.lstsq(moves, e).solution).reshape(-1, 3).norm(dim=1).mean())
+
+
+def merged(read: list[torch.Tensor], weighted: bool) -> torch.Tensor:
+    """``calibrate.merge_calibrations``' places of these calibrations, weighted or not."""
+    docs = [
+        {"format": "matscan-calibration/1", "light_positions_mm": {str(k): p[k].tolist() for k in range(24)}}
+        for p in read
+    ]
+    calibrate.MERGE_WEIGHTED = weighted
+    try:
+        m = calibrate.merge_calibrations(docs, [f"calibration {k}" for k in range(len(docs))]).document
+    finally:
+        calibrate.MERGE_WEIGHTED = False
+    return torch.tensor([m["light_positions_mm"][str(k)] for k in range(24)], dtype=torch.float64)
+
+
+def from_cache(folder: Path, file: Path) -> None:
+    """Add each calibration in bench/nearcal.py's ``--calibration-cache`` ``folder`` to ``file``."""
+    cal = json.loads(file.read_text())
+    for path in sorted(folder.glob("*-128-seed*-*.pt")):
+        lights, gains, record, _ = torch.load(path, weights_only=False)
+        cal[path.stem] = {
+            "read": bool(record["updated"]),
+            "light_positions_mm": [[round(float(v), 4) for v in p] for p in lights.position],
+            "light_gains": [[round(float(v), 5) for v in g] for g in gains],
+        }
+    file.write_text(json.dumps(dict(sorted(cal.items())), separators=(",", ":")) + "\n")
+
+
 def main() -> None:
-    cal = json.loads((HERE / "nearcal-calibrated" / "calibrations-s128.json").read_text())
+    file = HERE / "nearcal-calibrated" / "calibrations-s128.json"
+    for a in sys.argv[1:]:
+        if a.startswith("--from-cache="):
+            from_cache(Path(a.split("=", 1)[1]), file)
+    cal = json.loads(file.read_text())
     nominal = builtin_rig("dome24").light_set()
-    means, medians = [], []
-    print("draw dome  each of the four's mean error (mm; - unread)  merged mean  median")
+    rows = []
+    print("draw dome  each of the four's mean error (mean radial shift; mm; - unread)")
+    print(f"{'':10s}{'':52s}merged: mean  fitted out  median  weighted  fitted out")
     for draw in (1, 2, 0):
         for i in range(13):
             got = [cal.get(f"{k}-128-seed{draw}-{i}") for k in FOUR]
             if None in got:
                 continue
             delta = (torch.rand(24, 3, generator=torch.Generator().manual_seed(200 + i + 1000 * draw)) * 2 - 1) * 5
-            true = moved(nominal, delta).position
-
+            true = moved(nominal, delta).position.double()
             read = [torch.tensor(c["light_positions_mm"], dtype=true.dtype) for c in got if c["read"]]
-            docs = [
-                {"format": "matscan-calibration/1", "light_positions_mm": {str(k): p[k].tolist() for k in range(24)}}
-                for p in read
-            ]
-            merged = merge_calibrations(docs, [f"calibration {k}" for k in range(len(docs))]).document
-            mean = torch.tensor([merged["light_positions_mm"][str(k)] for k in range(24)], dtype=true.dtype)
+            mean, weighted = merged(read, False), merged(read, True)
             median = torch.stack(read).quantile(0.5, dim=0)  # the middle two's mean where four
-            each = [f"{error(torch.tensor(c['light_positions_mm']), true):5.2f}" if c["read"] else "    -" for c in got]
-            means.append(error(mean, true))
-            medians.append(error(median, true))
-            print(f"{draw:4d} {i:4d}  {' '.join(each)}{'':22s}{means[-1]:5.2f}  {medians[-1]:6.2f}")
+            places = [torch.tensor(c["light_positions_mm"], dtype=true.dtype) for c in got]
+            each = [
+                f"{error(p, true):4.2f} ({radial(p, true):+.2f})" if c["read"] else f"{'-':>12s}"
+                for p, c in zip(places, got, strict=True)
+            ]
+            rows.append(
+                (error(mean, true), common_removed(mean, true), error(median, true))
+                + (error(weighted, true), common_removed(weighted, true))
+            )
+            r = rows[-1]
+            print(f"{draw:4d} {i:4d}  {' '.join(each)}  {r[0]:11.2f} {r[1]:11.2f} {r[2]:7.2f} {r[3]:9.2f} {r[4]:11.2f}")
+    avg = [statistics.mean(c) for c in zip(*rows, strict=True)]
     print(
-        f"{len(means)} domes: merged mean {statistics.mean(means):.2f} mm on average "
-        f"({min(means):.2f}-{max(means):.2f}), median {statistics.mean(medians):.2f} "
-        f"({min(medians):.2f}-{max(medians):.2f})"
+        f"{len(rows)} domes, mean errors (mm): merged by mean {avg[0]:.2f} ({avg[1]:.2f} with its shift and scale "
+        f"fitted out), by median {avg[2]:.2f}, weighted {avg[3]:.2f} ({avg[4]:.2f})"
     )
 
 

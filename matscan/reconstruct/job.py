@@ -398,11 +398,14 @@ def reconstruct_capture(
         lights, notes, held = None, [], False
         # where a calibration placed the lights and its intensities were right already (the
         # estimate refused as no better), the places are fitted from the calibration's all
-        # the same where lightpos.CALIBRATED_SPREAD_MM is on (off by default)
+        # the same where lightpos.CALIBRATED_SPREAD_MM or CALIBRATED_COMMON is on (off by default)
         from matscan.reconstruct import lightpos
 
         placed = "light_positions_mm" in (capture.calibration or {})
-        refit = placed and "rejected" in record and lightpos.CALIBRATED_SPREAD_MM > 0
+        if lightpos.CALIBRATED_COMMON not in lightpos._COMMON:
+            raise ValueError(f"lightpos.CALIBRATED_COMMON: one of {', '.join(lightpos._COMMON)}")
+        common = placed and lightpos.CALIBRATED_COMMON != "off"
+        refit = placed and "rejected" in record and (lightpos.CALIBRATED_SPREAD_MM > 0 or common)
         scaled = (capture.calibration or {}).get("light_scales", {})
         calibrated = bool(scaled) and all(k is None or str(k) in scaled for k in capture.light_indices)
         # a calibration's scales that re-render the photos as well as the estimate are kept as
@@ -447,7 +450,10 @@ def reconstruct_capture(
             from matscan.reconstruct.lightpos import estimate_positions
 
             level = record["convention"] == "level sample"
-            lights, gains, record["positions"], notes = estimate_positions(capture, gains, cfg, progress, level)
+            together = common and ("rejected" in record or lightpos.CALIBRATED_COMMON == "always")
+            lights, gains, record["positions"], notes = estimate_positions(
+                capture, gains, cfg, progress, level, together=together
+            )
             if lights is not None:
                 capture = replace(capture, lights=lights)
         seconds = time.perf_counter() - t0
