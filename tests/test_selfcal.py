@@ -272,7 +272,7 @@ def _job_with(monkeypatch, record: dict, cfg: ReconstructConfig) -> tuple[dict, 
 
     seen = {}
 
-    def positions(capture, gains, cfg, progress=False, level=None):
+    def positions(capture, gains, cfg, progress=False, level=None, together=False):
         seen["level"] = level
         return None, gains, {"near_lights": 24}, []
 
