@@ -912,7 +912,7 @@ ASTRAY_MM = 1.0
 
 
 #: Merge the places weighted (:func:`_weighted_places`) instead of by their plain mean.
-#: Off: on 23 simulated domes it placed the lights 0.45 mm off on average where the mean
+#: Off: on 24 simulated domes it placed the lights 0.45 mm off on average where the mean
 #: is 0.46, and in its pilot a brick's intensities no longer confirmed the weighted places,
 #: whose fit then went 1.26 mm astray (docs/rti.md, "Half the merge's error is the dome's
 #: scale and shift").
