@@ -8,12 +8,15 @@ From nearcal-calibrated/calibrations-s128.json (each calibration the bench's
 ``--calibration-cache`` kept, by material, draw and dome index: its places, gains and
 whether its intensities were read) and the domes' true places, drawn as
 bench/nearcal.py draws them. ``python runs/nearcal_merge.py`` from the repository root;
-``--from-cache=DIR`` first adds to the file every calibration in the bench's cache DIR."""
+``--from-cache=DIR`` first adds to the file every calibration in the bench's cache DIR;
+``--to-cache=DIR`` instead writes the file's calibrations to DIR as that cache, so that the
+bench reuses them on a new machine."""
 
 import importlib
 import json
 import statistics
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -76,11 +79,33 @@ def from_cache(folder: Path, file: Path) -> None:
     file.write_text(json.dumps(dict(sorted(cal.items())), separators=(",", ":")) + "\n")
 
 
+def to_cache(file: Path, folder: Path) -> None:
+    """Write each calibration in ``file`` to ``folder`` as bench/nearcal.py's
+    ``--calibration-cache`` reads it (the lights at its places, each aimed where the rig
+    file aims it; its gains; whether its intensities were read), so that a new machine
+    reruns the bench without calibrating again. Files already there are left alone."""
+    rig = builtin_rig("dome24")
+    nominal = rig.light_set()
+    aims = torch.tensor([light.aim_mm for light in rig.lights], dtype=nominal.position.dtype)
+    folder.mkdir(parents=True, exist_ok=True)
+    for key, c in json.loads(file.read_text()).items():
+        path = folder / f"{key}.pt"
+        if path.exists():
+            continue
+        pos = torch.tensor(c["light_positions_mm"], dtype=nominal.position.dtype)
+        axis = (aims - pos) / (aims - pos).norm(dim=1, keepdim=True)
+        lights = replace(nominal, position=pos, axis=axis)
+        torch.save((lights, torch.tensor(c["light_gains"]), {"updated": c["read"]}, {}), path)
+
+
 def main() -> None:
     file = HERE / "nearcal-calibrated" / "calibrations-s128.json"
     for a in sys.argv[1:]:
         if a.startswith("--from-cache="):
             from_cache(Path(a.split("=", 1)[1]), file)
+        if a.startswith("--to-cache="):
+            to_cache(file, Path(a.split("=", 1)[1]))
+            return
     cal = json.loads(file.read_text())
     nominal = builtin_rig("dome24").light_set()
     rows = []
