@@ -9,10 +9,12 @@ From nearcal-calibrated/calibrations-s128.json (each calibration the bench's
 whether its intensities were read) and the domes' true places, drawn as
 bench/nearcal.py draws them. ``python runs/nearcal_merge.py`` from the repository root;
 ``--from-cache=DIR`` first adds to the file every calibration in the bench's cache DIR;
-``--to-cache=DIR`` instead writes the file's calibrations to DIR as that cache, so that the
-bench reuses them on a new machine."""
+``--subsets`` instead prints every subset of the four merged; ``--to-cache=DIR`` writes
+the file's calibrations to DIR as that cache, so that the bench reuses them on a new
+machine."""
 
 import importlib
+import itertools
 import json
 import statistics
 import sys
@@ -98,6 +100,30 @@ def to_cache(file: Path, folder: Path) -> None:
         torch.save((lights, torch.tensor(c["light_gains"]), {"updated": c["read"]}, {}), path)
 
 
+def subsets(cal: dict, nominal) -> None:
+    """Each subset of the four merged (its intensities read), over the domes all four
+    calibrated: mean and largest error and mean radial shift (mm), best first."""
+    rows: dict[tuple[int, ...], list[tuple[float, float]]] = {}
+    for draw in (1, 2, 0):
+        for i in range(13):
+            got = [cal.get(f"{k}-128-seed{draw}-{i}") for k in FOUR]
+            if None in got:
+                continue
+            delta = (torch.rand(24, 3, generator=torch.Generator().manual_seed(200 + i + 1000 * draw)) * 2 - 1) * 5
+            true = moved(nominal, delta).position.double()
+            for r in range(1, len(FOUR) + 1):
+                for sub in itertools.combinations(range(len(FOUR)), r):
+                    read = [torch.tensor(got[j]["light_positions_mm"], dtype=true.dtype) for j in sub if got[j]["read"]]
+                    if read:
+                        m = merged(read, False)
+                        rows.setdefault(sub, []).append((error(m, true), radial(m, true)))
+    print(f"{'merged':34s} domes  mean error  largest  radial shift (mm)")
+    for sub, v in sorted(rows.items(), key=lambda kv: statistics.mean(e for e, _ in kv[1])):
+        e, shift = [x for x, _ in v], [y for _, y in v]
+        name = " + ".join(FOUR[j] for j in sub)
+        print(f"{name:34s} {len(v):5d} {statistics.mean(e):12.2f} {max(e):8.2f} {statistics.mean(shift):+13.2f}")
+
+
 def main() -> None:
     file = HERE / "nearcal-calibrated" / "calibrations-s128.json"
     for a in sys.argv[1:]:
@@ -108,6 +134,9 @@ def main() -> None:
             return
     cal = json.loads(file.read_text())
     nominal = builtin_rig("dome24").light_set()
+    if "--subsets" in sys.argv:
+        subsets(cal, nominal)
+        return
     rows = []
     print("draw dome  each of the four's mean error (mean radial shift; mm; - unread)")
     print(f"{'':10s}{'':52s}merged: mean  fitted out  median  weighted  fitted out")
