@@ -1,15 +1,19 @@
 """Whether photos left out tell a capture's own light places from a merged calibration's
-where the photos' misfit cannot (nearcal_misfit.py): for bench/nearcal.py's materials
+where the photos' misfit cannot (nearcal_misfit.py). For bench/nearcal.py's materials
 named (``main:1`` the brick, ``held-out:0`` the twill, ``others:4`` the gravel: the list
 and index, as the bench's lists share domes by index), each candidate's lights and gains
-(the ideal dome's, the capture's own ``--self-calibrate-positions`` from the rig file, and
-the shipped recipe: the four's merged calibration, fitted from there) are held while the
-maps are fitted again ``FOLDS`` times, each time without a ``FOLDS``-th of the photos
-(light k in fold k mod ``FOLDS``), and scored by the RMSE of re-rendering the photos left
-out (raw photos, each fit's gains multiplied into its lights), beside the novel-light PSNR
-below the ideal dome's fit and the lights' mean error. The calibrations are those in
-nearcal-calibrated/calibrations-s128.json. ``python runs/nearcal_cv.py DRAW main:1
-held-out:0`` from the repository root (about 4 minutes a material on 2 cores)."""
+are held while the maps are fitted again ``FOLDS`` times, each time without a
+``FOLDS``-th of the photos (light k in fold k mod ``FOLDS``). The candidates: the ideal
+dome's, the capture's own ``--self-calibrate-positions`` from the rig file, the shipped
+recipe (the four's merged calibration, fitted from there) and the same with a confirmed
+calibration's places moved together (``lightpos.CALIBRATED_COMMON`` "confirmed"). Printed
+per candidate: the novel-light dB below the ideal dome's fit, the lights' mean error,
+the photos' misfit (``fit``), the RMSE of re-rendering the photos left out (``cv``; raw
+photos, each fit's gains multiplied into its lights) and the same with each left-out
+light's place and RGB gain fitted to its photo first (``refit``), all RMSE ×10⁻³. The
+calibrations are those in nearcal-calibrated/calibrations-s128.json. ``python
+runs/nearcal_cv.py DRAW main:1 held-out:0`` from the repository root (about 10 minutes a
+material on 2 cores)."""
 
 import json
 import sys
