@@ -940,7 +940,7 @@ def test_reconstruct_writes_the_positions_and_a_later_capture_reads_them(tmp_pat
     """``reconstruct --self-calibrate-positions``: matscan.json and self_calibration.json
     hold the same positions; a capture naming that file is lit from them, and its photos
     are corrected by the written gains."""
-    maps = generate("leather", 48, 2)
+    maps = generate("leather", 32, 2)
     offsets, gains = _offsets(7), _gains(9)
     photos = _photos(maps, offsets, gains, noise=0.002)
     cap_dir = tmp_path / "cap"
