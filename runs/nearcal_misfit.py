@@ -5,9 +5,10 @@ list and index, as the bench's lists share domes by index), the photos' re-rende
 PSNR below the ideal dome of the ideal dome's fit, the capture's own
 ``--self-calibrate-positions`` from the rig file, the four's merged calibration held
 (``reconstruct --calibration``) and fitted from there (with ``--self-calibrate-positions``).
-The calibrations are those in nearcal-calibrated/calibrations-s128.json.
-``python runs/nearcal_misfit.py DRAW main:1 others:4`` from the repository root (about 2
-minutes a material on 2 cores)."""
+The calibrations are those in nearcal-calibrated/calibrations-s128.json; ``--from=NAMES``
+merges those of the named ones (default paper,brick,leather,plastic).
+``python runs/nearcal_misfit.py [--from=NAMES] DRAW main:1 others:4`` from the repository
+root (about 2 minutes a material on 2 cores)."""
 
 import json
 import sys
@@ -52,7 +53,11 @@ def raw_rmse(result, capture: Capture, lights, gains) -> float:
 
 def main() -> None:
     torch.set_num_threads(2)
-    draw, specs = int(sys.argv[1]), sys.argv[2:]
+    args = sys.argv[1:]
+    names = ("paper", "brick", "leather", "plastic")
+    if args and args[0].startswith("--from="):
+        names = tuple(args.pop(0).removeprefix("--from=").split(","))
+    draw, specs = int(args[0]), args[1:]
     cal = json.loads((HERE / "nearcal-calibrated" / "calibrations-s128.json").read_text())
     rig, lists = builtin_rig("dome24"), materials()
     nominal = rig.light_set()
@@ -70,7 +75,7 @@ def main() -> None:
         sat = (photos >= 1 - 0.5 / 255).any(1, keepdim=True)
         files = tuple(f"led_{k:02d}.png" for k in range(24))
         cap = Capture(rig, rig.field_mm, "srgb", photos, sat, tuple(range(24)), nominal, files)
-        got = [cal[f"{k}-{SIZE}-seed{draw}-{i}"] for k in ("paper", "brick", "leather", "plastic")]
+        got = [cal[f"{k}-{SIZE}-seed{draw}-{i}"] for k in names]
         docs = [
             {
                 "format": "matscan-calibration/1",
