@@ -132,6 +132,8 @@ def batch(
     """``matscan batch`` (module doc). Returns the manifest."""
     from matscan.reconstruct.job import ReconstructConfig
 
+    if workers is not None and scheduler:
+        raise MatscanError("--workers: a scheduler has its own workers; give --workers or --scheduler, not both")
     cfg = cfg or ReconstructConfig()
     paths = expand_captures(captures)
     names = output_names(paths)

@@ -807,7 +807,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         choices=["auto", "on", "off"],
         help="refine by inverse rendering (auto, lm solver with the networks: 1 photo, the networks alone; "
-        "2 or 3, networks + solver or solver alone, whichever predicts photos left out better; from 4, "
+        "2 or 3, networks + solver unless the solver alone predicts photos left out at least 5% better; from 4, "
         "always; adam: from 10; always without networks; docs/results.md)",
     )
     p.add_argument(
@@ -1050,7 +1050,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--prior",
         default=None,
         help="material prior: v1 (the default), v2 (adds relief, varying specular, dark glossy), "
-        "v3 (adds dark glossy in deep relief), v4 (v3 with dark glossy drawn twice as often)",
+        "v3 (adds dark glossy in deep relief), v4 (v3 with dark glossy drawn twice as often), "
+        "v5 (adds bright glossy coats)",
     )
     p.add_argument("--device", default=None, help="auto (default: cuda when there is one), cpu, cuda, cuda:N")
     p.add_argument("--prefetch", type=positive_int, default=None, help="batches each data worker prepares ahead")

@@ -52,6 +52,11 @@ def test_inputs_and_cluster_shape(captures, tmp_path):
     with pytest.raises(MatscanError, match="matches no folder"):
         expand_captures([str(tmp_path / "zz*")])
     assert cluster_shape(None, 2) == (2, 1) and cluster_shape(1, 2) == (1, 2) and cluster_shape(2, 16) == (2, 8)
+    from matscan.batch import batch
+
+    with pytest.raises(MatscanError, match="not both"):  # before any work: nothing written
+        batch([str(captures / "cork")], tmp_path / "out", workers=2, scheduler="tcp://127.0.0.1:1")
+    assert not (tmp_path / "out").exists()
 
 
 def _manifest(out: Path) -> dict:
