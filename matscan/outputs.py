@@ -6,8 +6,14 @@ or computes anything:
 - the output must not be, contain, or lie inside any of the command's inputs
   (capture folder and every file its ``capture.json`` names, map set, calibration
   file, weights file), nor be the current folder or one holding it;
-- a file that a ``capture.json`` beside it lists (or that ``capture.json`` itself)
-  is never replaced, whatever the flags;
+- a file that a ``capture.json`` beside it lists (or that ``capture.json`` itself),
+  any existing file or folder inside a capture folder (one holding ``capture.json``, at
+  any depth), and an RTI light file (``.lp``) whose photos lie beside it are never
+  replaced, whatever the flags;
+- a folder holding a capture (a ``capture.json`` in it or below it) is replaced only by
+  the command that wrote it (its ``matscan.json`` says which: ``simulate`` over a
+  simulated capture, ``import-rti`` over an imported one, ``synth`` over a synth set),
+  whatever the flags: ``--overwrite`` never turns a capture into another output;
 - an existing folder is replaced only with ``--overwrite``, and only when it holds
   nothing but a previous matscan output (every file listed in its ``matscan.json``,
   :func:`foreign_entries`), unless ``--overwrite-any`` is given too; an existing
@@ -132,6 +138,51 @@ def _capture_files_here(path: Path) -> set[str]:
     return {p.name for p in capture_inputs(path.parent)[1:] if p.parent == path.parent} | {"capture.json"}
 
 
+def _capture_above(path: Path) -> Path | None:
+    """The nearest folder above ``path`` that holds a ``capture.json`` (a capture that
+    ``path`` lies in), or None."""
+    for folder in path.parents:
+        if (folder / "capture.json").is_file():
+            return folder
+    return None
+
+
+def _captures_within(folder: Path) -> list[str]:
+    """The ``capture.json`` files in ``folder`` or below it (relative paths)."""
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("capture.json"))
+
+
+def _written_by(folder: Path) -> str | None:
+    """The command a ``matscan.json`` in ``folder`` says wrote it (None where none says)."""
+    try:
+        record = json.loads((folder / RECORD).read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return None
+    command = record.get("command") if isinstance(record, dict) else None
+    return command if isinstance(command, str) else None
+
+
+def _rti_photos_beside(path: Path) -> list[str]:
+    """The photos beside ``path`` that it lists, if it is an RTI light file (``.lp``: a
+    'FILE x y z' line per photo); empty otherwise."""
+    if path.suffix.lower() != ".lp" or not path.is_file():
+        return []
+    try:
+        if path.stat().st_size > 2**20:
+            return []
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return []
+    found = []
+    for line in lines:
+        parts = line.split()
+        if len(parts) >= 4 and not parts[0].startswith("#"):
+            name = " ".join(parts[:-3])
+            if "\x00" not in name and (path.parent / name).is_file():
+                found.append(name)
+    return found
+
+
 def foreign_entries(folder: Path) -> list[str]:
     """Files in ``folder`` (relative paths) that no ``matscan.json`` there says matscan
     wrote; empty for a previous matscan output. A folder without a readable
@@ -194,8 +245,11 @@ def check_destination(
     overwrite: bool = False,
     overwrite_any: bool = False,
     flag: str = "--out",
+    command: str | None = None,
 ) -> Path:
-    """Check an output path before any work (module doc); return it resolved."""
+    """Check an output path before any work (module doc); return it resolved. ``command``
+    names the command writing it: a folder holding a capture is replaced only by the
+    command that wrote it."""
     if kind not in ("folder", "file"):
         raise ValueError(f"kind {kind!r}")
     text = str(out)
@@ -224,6 +278,16 @@ def check_destination(
             )
     if kind == "file" and path.name in _capture_files_here(path):
         raise input_error(given, f"belongs to the capture in {path.parent}; matscan never replaces a capture's files")
+    if path.exists() and (holder := _capture_above(path)) is not None:
+        raise input_error(
+            given, f"lies in the capture {holder}; matscan never replaces a capture's files (choose another {flag})"
+        )
+    if kind == "file" and (photos := _rti_photos_beside(path)):
+        raise input_error(
+            given,
+            f"is the light file of the RTI photos beside it ({photos[0]}…); matscan never replaces a capture's "
+            f"files (choose another {flag})",
+        )
     anc = _nearest_existing(path.parent)
     if not anc.is_dir():
         raise input_error(anc, f"is not a folder, so {flag} {given} cannot be created")
@@ -249,6 +313,13 @@ def check_destination(
                 if not overwrite:
                     raise input_error(
                         given, "folder exists and is not empty (choose another --out, or pass --overwrite)"
+                    )
+                held_captures = _captures_within(path)
+                if held_captures and (command is None or _written_by(path) != command):
+                    raise input_error(
+                        given,
+                        f"holds a capture ({held_captures[0]}); matscan never replaces a capture, whatever the "
+                        f"flags (move it, or choose another {flag})",
                     )
                 foreign = foreign_entries(path)
                 if foreign and not overwrite_any:
@@ -324,13 +395,13 @@ def claim_output(
         with output_lock(resolved):
             yield _ACTIVE[resolved]
         return
-    path = check_destination(out, inputs, kind, overwrite, overwrite_any, flag)
+    path = check_destination(out, inputs, kind, overwrite, overwrite_any, flag, command)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise input_error(path.parent, f"cannot create this folder ({exc.strerror})") from None
     with output_lock(path):
-        check_destination(out, inputs, kind, overwrite, overwrite_any, flag)  # again, now that it is ours
+        check_destination(out, inputs, kind, overwrite, overwrite_any, flag, command)  # again, now that it is ours
         try:
             clean_stale(path)
         except OSError as exc:

@@ -110,6 +110,68 @@ def test_a_file_of_another_capture_is_never_replaced(capture, capsys, tmp_path):
     assert_refused(argv, capsys, capture.parent, "belongs to the capture")
 
 
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["reconstruct", "@sample", "--model", "none", "--steps", "1"],
+        ["simulate", "@sample", "--size", "16", "--lights", "6"],
+    ],
+)
+@pytest.mark.parametrize("flags", [["--overwrite"], ["--overwrite", "--overwrite-any"]])
+def test_overwrite_never_turns_a_capture_into_another_output(capture, capsys, command, flags):
+    # the capture's matscan.json lists every file in it, as a previous output's does, but
+    # it was written as a capture (write_capture): no other command may replace it
+    argv = [*command, "--out", str(capture), *flags]
+    assert_refused(argv, capsys, capture.parent, "holds a capture (capture.json)")
+
+
+def test_a_capture_below_the_output_is_never_replaced(capture, capsys, tmp_path):
+    # a capture moved into a previous output's folder (a batch folder, say)
+    out = tmp_path / "maps"
+    assert main(["reconstruct", str(capture), "--out", str(out), "--model", "none", "--steps", "1"]) == 0
+    capture.rename(out / "cap")
+    lab = tmp_path
+    argv = ["reconstruct", "@sample", "--out", str(out), "--model", "none", "--steps", "1", "--overwrite"]
+    assert_refused(argv, capsys, lab, "holds a capture (cap/capture.json)")
+
+
+def test_a_simulated_capture_is_replaced_by_simulate_again(tmp_path, capsys):
+    out = tmp_path / "sim"
+    argv = ["simulate", "@sample", "--out", str(out), "--size", "16", "--lights", "6"]
+    assert main(argv) == 0
+    first = tree_digest(out)
+    assert main([*argv, "--seed", "1", "--overwrite"]) == 0  # its own command: allowed
+    assert tree_digest(out).keys() == first.keys() and tree_digest(out) != first
+
+
+def test_a_file_inside_a_capture_is_never_replaced(capture, capsys):
+    # files the capture.json does not list (a dark frame, a journal, notes) are the capture's too
+    (capture / "dark.png").write_bytes(b"not listed")
+    (capture / "raw").mkdir()
+    (capture / "raw" / "lights.lp").write_text("1\nx.png 0 0 1\n")
+    lab = capture.parent
+    for argv in (
+        ["render", "@sample", "--out", str(capture / "dark.png"), "--light", "0,0,225", "--overwrite"],
+        ["rig", "to-lp", "dome24", "--out", str(capture / "raw" / "lights.lp"), "--overwrite"],
+    ):
+        assert_refused(argv, capsys, lab, f"lies in the capture {capture}")
+
+
+def test_an_rti_light_file_is_never_replaced(tmp_path, capsys):
+    rti = tmp_path / "rti"
+    rti.mkdir()
+    for name in ("a.png", "b.png"):
+        (rti / name).write_bytes(b"photo")
+    (rti / "dirs.lp").write_text("2\na.png 0.1 0.2 0.97\nb.png -0.3 0.1 0.95\n")
+    argv = ["rig", "to-lp", "dome24", "--out", str(rti / "dirs.lp"), "--overwrite"]
+    assert_refused(argv, capsys, rti, "is the light file of the RTI photos beside it (a.png")
+    # an .lp file whose photos are not beside it is an ordinary output
+    lone = tmp_path / "old.lp"
+    lone.write_text("1\nelsewhere.png 0 0 1\n")
+    assert main(["rig", "to-lp", "dome24", "--out", str(lone), "--overwrite"]) == 0
+    assert len(lone.read_text().split("\n")) > 20  # dome24's 24 lights now
+
+
 def test_single_file_outputs_need_overwrite(tmp_path, capsys):
     out = tmp_path / "r.png"
     out.write_bytes(b"mine")
