@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import glob
 import os
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
@@ -131,32 +132,66 @@ def batch(
 ) -> dict[str, Any]:
     """``matscan batch`` (module doc). Returns the manifest."""
     from matscan.reconstruct.job import ReconstructConfig
+    from matscan.weights import anyrig_path, model_path
 
     if workers is not None and scheduler:
         raise MatscanError("--workers: a scheduler has its own workers; give --workers or --scheduler, not both")
     cfg = cfg or ReconstructConfig()
+    if cfg.model != "none" and not (weights := model_path(cfg.model)).is_file():  # before any work, as reconstruct
+        raise input_error(weights, "no such weights file")
+    if cfg.anyrig != "none":
+        anyrig_path(cfg.anyrig)
     paths = expand_captures(captures)
     names = output_names(paths)
     out = Path(out)
+    where = out.resolve()
+    for path in paths:
+        if where == path.resolve() or path.resolve() in where.parents:
+            how = "is" if where == path.resolve() else "lies inside"
+            raise input_error(out, f"{how} the input capture {path}; matscan never writes into its inputs")
     settings = json_safe(asdict(cfg))
+    created = not out.exists()
     with output_lock(out):
-        manifest = _open_manifest(out, settings)
-        entries = manifest["captures"]
-        for name, path in zip(names, paths, strict=True):
-            entry = entries.get(name)
-            if entry is None or entry["capture"] != str(path.resolve()):
-                entries[name] = {"capture": str(path.resolve()), "state": "pending"}
-            elif redo or (retry_failed and entry["state"] == "failed"):
-                entries[name] = {"capture": str(path.resolve()), "state": "pending"}
-            elif entry["state"] == "done" and not (out / name / "matscan.json").is_file():
-                entries[name] = {"capture": str(path.resolve()), "state": "pending"}
-        todo = [n for n in names if entries[n]["state"] == "pending"]
-        _save(out, manifest)
-        if todo:
-            _run(out, manifest, todo, settings, workers, scheduler, threads, progress, on_result)
-        from matscan.report.catalogue import write_catalogue
+        try:
+            return _batch(
+                out, paths, names, settings, workers, scheduler, threads, retry_failed, redo, progress, on_result
+            )
+        except MatscanError:
+            if (
+                created
+                and out.is_dir()
+                and not any(e["state"] != "pending" for e in _manifest_or_empty(out).get("captures", {}).values())
+            ):  # a batch that could not start (an unreachable scheduler) leaves nothing behind
+                shutil.rmtree(out, ignore_errors=True)
+            raise
 
-        write_catalogue(out, manifest)
+
+def _manifest_or_empty(out: Path) -> dict[str, Any]:
+    try:
+        return read_json(out / MANIFEST)
+    except MatscanError:
+        return {}
+
+
+def _batch(out, paths, names, settings, workers, scheduler, threads, retry_failed, redo, progress, on_result):
+    """:func:`batch` once its output is locked."""
+    manifest = _open_manifest(out, settings)
+    entries = manifest["captures"]
+    for name, path in zip(names, paths, strict=True):
+        entry = entries.get(name)
+        if entry is None or entry["capture"] != str(path.resolve()):
+            entries[name] = {"capture": str(path.resolve()), "state": "pending"}
+        elif redo or (retry_failed and entry["state"] == "failed"):
+            entries[name] = {"capture": str(path.resolve()), "state": "pending"}
+        elif entry["state"] == "done" and not (out / name / "matscan.json").is_file():
+            entries[name] = {"capture": str(path.resolve()), "state": "pending"}
+    todo = [n for n in names if entries[n]["state"] == "pending"]
+    _save(out, manifest)
+    if todo:
+        _run(out, manifest, todo, settings, workers, scheduler, threads, progress, on_result)
+    from matscan.report.catalogue import write_catalogue
+
+    write_catalogue(out, manifest)
     return manifest
 
 

@@ -626,9 +626,10 @@ def cmd_batch(args: argparse.Namespace) -> str:
     entries = manifest["captures"].values()
     done = sum(e["state"] == "done" for e in entries)
     failed = sum(e["state"] == "failed" for e in entries)
-    return (
+    summary = (
         f"batch: {done} done, {failed} failed of {len(manifest['captures'])}; catalogue {Path(args.out) / 'index.html'}"
     )
+    return (summary, 1) if failed else summary  # a failed capture is reported in the exit status too
 
 
 def cmd_train_anyrig(args: argparse.Namespace) -> str:
@@ -1370,8 +1371,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(_join_vectors(sys.argv[1:] if argv is None else argv))
     previous = signal.signal(signal.SIGTERM, _terminate)
+    code = 0
     try:
-        print(args.func(args))
+        result = args.func(args)
+        if isinstance(result, tuple):  # (summary, exit status): done, but not all of it
+            result, code = result
+        print(result)
     except MatscanError as exc:
         print(f"matscan: error: {_one_line(exc)}", file=sys.stderr)
         return 2
@@ -1380,11 +1385,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"matscan: error: {_one_line(where + (exc.strerror or str(exc)))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        print(f"matscan: interrupted; {exc or 'nothing was written'}", file=sys.stderr)
+        print(f"matscan: interrupted; {str(exc) or 'nothing was written'}", file=sys.stderr)
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
-    return 0
+    return code
 
 
 def _overwrite_folder(p: argparse.ArgumentParser) -> None:

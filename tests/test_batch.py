@@ -53,9 +53,17 @@ def test_inputs_and_cluster_shape(captures, tmp_path):
         expand_captures([str(tmp_path / "zz*")])
     assert cluster_shape(None, 2) == (2, 1) and cluster_shape(1, 2) == (1, 2) and cluster_shape(2, 16) == (2, 8)
     from matscan.batch import batch
+    from matscan.reconstruct import ReconstructConfig
 
     with pytest.raises(MatscanError, match="not both"):  # before any work: nothing written
         batch([str(captures / "cork")], tmp_path / "out", workers=2, scheduler="tcp://127.0.0.1:1")
+    with pytest.raises(MatscanError, match="no such weights file"):
+        batch([str(captures / "cork")], tmp_path / "out", ReconstructConfig(model=str(tmp_path / "nope.safetensors")))
+    with pytest.raises(MatscanError, match=f"lies inside the input capture {captures / 'cork'}"):
+        batch([str(captures / "cork")], captures / "cork" / "batch")
+    assert not (tmp_path / "out").exists() and not (captures / "cork" / "batch").exists()
+    with pytest.raises(MatscanError, match="cannot reach"):  # a batch that cannot start leaves nothing
+        batch([str(captures / "cork")], tmp_path / "out", scheduler="tcp://127.0.0.1:1")
     assert not (tmp_path / "out").exists()
 
 
@@ -83,7 +91,7 @@ def test_interrupted_batch_resumes_and_reports_the_broken_capture(captures, tmp_
     done_before = {n: (out / n / "matscan.json").stat().st_mtime_ns for n, e in first.items() if e["state"] == "done"}
 
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert again.returncode == 0, again.stderr
+    assert again.returncode == 1, again.stderr  # done, but one capture failed
     assert "batch: 4 done, 1 failed of 5" in again.stdout
     manifest = _manifest(out)
     states = {n: e["state"] for n, e in manifest["captures"].items()}
@@ -102,7 +110,7 @@ def test_interrupted_batch_resumes_and_reports_the_broken_capture(captures, tmp_
     # a third run does nothing; --retry-failed runs the broken one again
     mtimes = {n: (out / n / "matscan.json").stat().st_mtime_ns for n in ("brass", "cork", "denim", "felt")}
     third = subprocess.run([*cmd, "--retry-failed"], capture_output=True, text=True, timeout=300)
-    assert third.returncode == 0 and "torn: " in third.stderr
+    assert third.returncode == 1 and "torn: " in third.stderr
     assert {n: (out / n / "matscan.json").stat().st_mtime_ns for n in mtimes} == mtimes
     other = subprocess.run([*cmd, "--validate", "2"], capture_output=True, text=True, timeout=300)
     assert other.returncode == 2 and "other reconstruction settings" in other.stderr

@@ -299,9 +299,9 @@ def test_reconstruct_config_checks_itself():
 # --- atomic and exclusive writes -----------------------------------------------------------
 
 
-def _python(code: str) -> subprocess.Popen:
+def _python(code: str, stderr=None) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], env=env)
+    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], env=env, stderr=stderr, text=True)
 
 
 def _wait_for(predicate, seconds: float = 20.0) -> None:
@@ -475,11 +475,13 @@ def test_sigterm_is_handled_like_ctrl_c(tmp_path):
 
         cli.cmd_synth = slow
         sys.exit(cli.main(["synth", "--out", {str(out)!r}, "--count", "1"]))
-        """
+        """,
+        stderr=subprocess.PIPE,
     )
     _wait_for(started.exists)
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=30) == 130
+    assert proc.stderr.read().strip() == "matscan: interrupted; nothing was written"
     assert not out.exists()
     assert litter(tmp_path) == []
 
