@@ -4,6 +4,7 @@ injected, and resuming byte for byte."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import signal
 import subprocess
@@ -281,6 +282,27 @@ def test_folders_that_are_not_this_capture_are_refused(tmp_path):
         )
     # the same settings again: already complete, nothing retaken or rewritten
     acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, SIX)
+    assert files(tmp_path / "cap") == before
+
+
+@pytest.mark.parametrize(
+    "line, words",
+    [
+        ("[1, 2]", "line 2: is not a journal event"),
+        ('{"event": "frame"}', "line 2: this frame event has no usable 'stem'"),
+        ('{"event": "frame", "stem": "led_00", "file": "../x.png", "sha256": "0"}', "'../x.png' is not a file name"),
+        ('{"event": "exposure", "exposure_s": "fast"}', "this exposure event has no usable 'exposure_s'"),
+    ],
+)
+def test_a_damaged_journal_is_one_line_naming_it(tmp_path, line, words):
+    leds = VirtualLeds()
+    acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, SIX)
+    journal = tmp_path / "cap" / "capture.journal"
+    first = journal.read_text().splitlines()[0]
+    journal.write_text(first + "\n" + line + "\n")
+    before = files(tmp_path / "cap")
+    with pytest.raises(MatscanError, match=re.escape(f"{journal}: {words}") if "line 2" in words else re.escape(words)):
+        acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, SIX)
     assert files(tmp_path / "cap") == before
 
 

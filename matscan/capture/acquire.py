@@ -121,11 +121,17 @@ class Journal:
         if not self.path.exists():
             return []
         events = []
-        for line in self.path.read_text(encoding="utf-8").splitlines():
+        try:
+            text = self.path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise input_error(self.path, f"cannot be read as a capture journal ({exc})") from None
+        for number, line in enumerate(text.splitlines(), 1):
             try:
-                events.append(json.loads(line))
-            except ValueError:  # a line cut short by a kill: everything before it stands
+                event = json.loads(line)
+            except (ValueError, RecursionError):  # a line cut short by a kill: everything before it stands
                 break
+            _check_event(self.path, number, event)
+            events.append(event)
         return events
 
     def append(self, event: dict[str, Any]) -> None:
@@ -133,6 +139,31 @@ class Journal:
             f.write(json.dumps(event, sort_keys=True) + "\n")
             f.flush()
             os.fsync(f.fileno())
+
+
+#: What each kind of journal event must hold, and of which type, to be replayed.
+_EVENT_FIELDS: dict[str, dict[str, type | tuple[type, ...]]] = {
+    "start": {"settings": dict},
+    "exposure": {"exposure_s": (int, float)},
+    "frame": {"stem": str, "file": str, "sha256": str},
+}
+
+
+def _check_event(path: Path, number: int, event: Any) -> None:
+    """A journal line as :func:`_replay` needs it, or a one-line error naming the line."""
+    if not isinstance(event, dict):
+        raise input_error(
+            path, f"line {number}: is not a journal event (a JSON object); this capture cannot be resumed"
+        )
+    for name, kind in _EVENT_FIELDS.get(str(event.get("event")), {}).items():
+        value = event.get(name)
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise input_error(
+                path,
+                f"line {number}: this {event['event']} event has no usable {name!r}; this capture cannot be resumed",
+            )
+    if event.get("event") == "frame" and Path(event["file"]).name != event["file"]:
+        raise input_error(path, f"line {number}: {event['file']!r} is not a file name in the capture folder")
 
 
 def _sha256(data: bytes) -> str:
