@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -980,8 +981,9 @@ def merge(out: str | Path, files: Sequence[str | Path], overwrite: bool = False)
     """``matscan calibrate --merge FILES --out FILE``: read each calibration file, merge
     them (:func:`merge_calibrations`) and write the result to ``out``, checked and locked
     first and written atomically, never over one of the files. Flat fields named by
-    relative paths must lie beside ``out`` as they lie beside the files: self-calibrations
-    name them by absolute path."""
+    relative paths (beside the first file, as the files must name the same ones) are
+    named again relative to ``out``'s folder, so the merge finds them wherever it is
+    written; self-calibrations name them by absolute path."""
     from matscan.atomic import write_text
     from matscan.jsonfile import dumps, read_json
     from matscan.outputs import calibration_inputs, claim_output
@@ -991,6 +993,12 @@ def merge(out: str | Path, files: Sequence[str | Path], overwrite: bool = False)
     with claim_output(out, "calibrate", inputs, kind="file", overwrite=overwrite) as claim:
         documents = [read_json(p) for p in paths]
         result = merge_calibrations(documents, [str(p) for p in paths])
+        flats = result.document.get("flat_fields")
+        if isinstance(flats, dict):
+            base = paths[0].resolve().parent
+            for key, name in flats.items():
+                if isinstance(name, str) and not Path(name).is_absolute():
+                    flats[key] = os.path.relpath(base / name, claim.path.parent)
         write_text(claim.path, dumps(result.document, str(claim.path)))
     return result
 

@@ -510,3 +510,26 @@ def test_calibrate_merge_writes_the_merge_and_never_over_its_files(tmp_path, cap
     assert "never writes over its inputs" in capsys.readouterr().err and files[0].read_bytes() == before
     assert main(["calibrate", "--merge", str(files[0]), "--grey", "@sample", "--out", str(out)]) == 2
     assert "--merge merges calibration files" in capsys.readouterr().err
+
+
+def test_a_merge_written_elsewhere_names_the_flat_fields_where_they_are(tmp_path, capsys):
+    """Flat fields named relative to the calibrations are named relative to the merge's
+    folder, so a merge written into another folder still finds them (an audit found it
+    naming flat_00.exr beside itself, where none was)."""
+    lab = tmp_path / "lab"
+    lab.mkdir()
+    files = []
+    for k, x in enumerate((10.0, 14.0)):
+        doc = {
+            "format": "matscan-calibration/1",
+            "light_positions_mm": {"3": [x, 0.0, 150.0]},
+            "flat_fields": {"3": "flat_03.exr"},
+        }
+        files.append(lab / f"s{k}.json")
+        files[-1].write_text(json.dumps(doc))
+    out = tmp_path / "domes" / "dome.json"
+    assert main(["calibrate", "--merge", *map(str, files), "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["flat_fields"] == {"3": "../lab/flat_03.exr"}
+    beside = lab / "dome.json"
+    assert main(["calibrate", "--merge", *map(str, files), "--out", str(beside)]) == 0
+    assert json.loads(beside.read_text())["flat_fields"] == {"3": "flat_03.exr"}  # as given, beside them
