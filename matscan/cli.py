@@ -458,7 +458,18 @@ def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
     folder = Path(args.folder)
     if not folder.is_dir():
         raise MatscanError(f"{folder}: is not a folder of photos")
-    photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in READABLE)
+    if (folder / "capture.json").is_file():  # a capture: its photos under the lights, not its dark frame or backlight
+        from matscan.jsonfile import read_json
+
+        doc = read_json(folder / "capture.json")
+        images = doc.get("images") if isinstance(doc, dict) else None
+        if not isinstance(images, list) or not all(
+            isinstance(e, dict) and isinstance(e.get("file"), str) for e in images
+        ):
+            raise input_error(folder / "capture.json", "has no list of images naming their files")
+        photos = [folder / e["file"] for e in images]
+    else:
+        photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in READABLE)
     if not photos:
         raise MatscanError(f"{folder}: holds no photos ({', '.join(sorted(READABLE))})")
     out = Path(args.out)
@@ -494,6 +505,14 @@ def cmd_rig_from_spheres(args: argparse.Namespace) -> str:
         x, y, z, r = _vector(text, 4, "--sphere")
         if r <= 0:
             raise MatscanError(f"--sphere: radius {r:g} must be positive (mm)")
+        if z <= 0:
+            raise MatscanError(f"--sphere: {text}: its centre lies at or below the sample's plane (z = {z:g} mm)")
+        for (other, q), given in zip(spheres, args.sphere, strict=False):
+            if math.dist((x, y, z), other) < r + q:
+                raise MatscanError(
+                    f"--sphere: {text} and {given} overlap (centres {math.dist((x, y, z), other):g} mm apart, "
+                    f"radii {r:g} and {q:g}); give each sphere's own centre"
+                )
         spheres.append(((x, y, z), r))
     dome = None
     if args.dome_radius is not None:

@@ -3,6 +3,7 @@ rendered under known directional lights with the project's renderer."""
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 from pathlib import Path
@@ -109,6 +110,13 @@ def test_cli_writes_an_lp_file_from_sphere_photos(tmp_path, capsys):
     )
     assert main(["rig", "from-sphere", str(folder), "--sphere", "1,2", "--out", str(tmp_path / "x.lp")]) == 2
     assert "--sphere" in capsys.readouterr().err
+    # a capture folder: the photos its capture.json lists, not its dark frame
+    write_image(folder / "dark.png", torch.zeros(*SIZE, 3).numpy(), bits=8)
+    images = [{"light": k, "file": f"img{k:02d}.png"} for k in range(4)]
+    (folder / "capture.json").write_text(json.dumps({"format": "matscan-capture/1", "rig": "dome24", "images": images}))
+    again = tmp_path / "again.lp"
+    assert main(["rig", "from-sphere", str(folder), "--sphere", sphere, "--out", str(again)]) == 0
+    assert parse_lp(again.read_text()).files == lp.files
 
 
 # --- near lights from two spheres ------------------------------------------------------
@@ -263,6 +271,9 @@ def test_cli_places_the_lights_on_a_dome_from_one_sphere(tmp_path, capsys):
         (["--out", str(tmp_path / "x.json")], "or one with --dome-radius"),
         (["--dome-centre", "0,0,-5", "--out", str(tmp_path / "x.json")], "give the dome's radius"),
         (["--dome-radius", "30", "--out", str(tmp_path / "x.json")], "outside the dome"),
+        (["--sphere", f"{x},{y},{z},{r}", "--out", str(tmp_path / "x.json")], "overlap"),  # the same sphere twice
+        (["--sphere", f"{x + r},{y},{z},{r}", "--out", str(tmp_path / "x.json")], "overlap (centres"),
+        (["--sphere", "0,0,-50,20", "--dome-radius", "225", "--out", str(tmp_path / "x.json")], "below the sample"),
     ):
         assert main([*args, *bad]) == 2
         assert message in capsys.readouterr().err

@@ -396,7 +396,11 @@ def find_sphere(
         img = photos[i] if isinstance(photos, Tensor) else _read_linear(photos[i], encoding)
         grey = img.double().mean(0)
         if mean is not None and grey.shape != mean.shape:
-            raise MatscanError(f"{where}: the photos differ in size ({tuple(grey.shape)} and {tuple(mean.shape)})")
+            names = ("photo 0", f"photo {i}") if isinstance(photos, Tensor) else (photos[0], photos[i])
+            raise MatscanError(
+                f"{where}: the photos differ in size ({names[1]}: {grey.shape[1]}×{grey.shape[0]} px, "
+                f"{names[0]}: {mean.shape[1]}×{mean.shape[0]})"
+            )
         mean = grey / n if mean is None else mean + grey / n
         h, w = grey.shape
         factor = max(1, math.ceil(max(h, w) / SEARCH_SIDE))
