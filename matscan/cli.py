@@ -280,6 +280,8 @@ def cmd_evaluate(args: argparse.Namespace) -> str:
                 count = int(spec.split(":", 1)[1])
             except ValueError:
                 raise MatscanError(f"{spec}: write procedural:N with N a number of materials") from None
+            if count < 1:
+                raise MatscanError(f"{spec}: write procedural:N with N at least 1")
             for i in range(count):  # seeds above 2^41: never drawn in training (seeds below 2^40)
                 family, maps = random_material(args.size, 2**41 + i)
                 materials.append((f"procedural-{i:03d}-{family}", maps))

@@ -139,7 +139,7 @@ def read_image(path: str | Path) -> ImageData:
             path, f"unsupported image type {suffix or '(none)'!r} (expected one of {', '.join(sorted(READABLE))})"
         )
     if not path.is_file():
-        raise input_error(path, "no such file")
+        raise input_error(path, "is a folder, not an image file" if path.is_dir() else "no such file")
     printed: list[str] = []
     try:
         with _library_output(printed):

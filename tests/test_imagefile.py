@@ -71,6 +71,9 @@ def test_read_errors(tmp_path):
         read_image(tmp_path / "bad.exr")
     with pytest.raises(MatscanError, match=r"gone\.png: no such file"):
         read_image(tmp_path / "gone.png")
+    (tmp_path / "shelf.png").mkdir()
+    with pytest.raises(MatscanError, match=r"shelf\.png: is a folder, not an image file"):
+        read_image(tmp_path / "shelf.png")
     with pytest.raises(MatscanError, match=r"unsupported image type '\.gif'"):
         read_image(tmp_path / "x.gif")
 

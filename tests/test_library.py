@@ -106,3 +106,12 @@ def test_matscan_mapset_and_unknown_layout(tmp_path):
     write_image(tmp_path / "odd" / "x_normal.png", np.zeros((4, 4, 3)))
     with pytest.raises(MatscanError, match=r"odd: not a map folder .*found picture\.png, x_normal\.png"):
         read_any(tmp_path / "odd")
+
+
+def test_a_matscan_mapset_missing_a_map_says_which(tmp_path):
+    # not read as another layout, where a confidence_normal.png passed for the normal map
+    write_mapset(tmp_path / "ours", random_maps(8))
+    write_image(tmp_path / "ours" / "confidence_normal.png", np.zeros((8, 8, 1)))
+    (tmp_path / "ours" / "normal.png").unlink()
+    with pytest.raises(MatscanError, match=r"ours: no normal map \(expected normal.png"):
+        read_any(tmp_path / "ours")

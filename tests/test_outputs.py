@@ -268,6 +268,8 @@ def test_unwritable_and_full_file_systems_are_refused_before_the_work(capture, t
         (["simulate", "@sample", "--out", "c", "--noise", "nan"], "not a finite number"),
         (["reconstruct", "@sample", "--out", "o", "--steps", "-1"], "must be at least 1"),
         (["evaluate", "photos", "--out", "e", "--size", "0"], "must be at least 8"),
+        (["evaluate", "procedural:0", "--out", "e"], "procedural:N with N at least 1"),
+        (["reconstruct", "@sample", "--out", "o", "--emissive", "--refine", "off"], "drop --emissive or --refine off"),
         (["calibrate", "--chart", "c.png", "--out", "c.json", "--corners", "nan,0,1,0,1,1,0,1"], "not finite"),
     ],
 )

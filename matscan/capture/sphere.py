@@ -674,7 +674,12 @@ def rig_from_spheres(
         if k is None or lights[k].directional:
             continue
         pos, spread = light_position_from_spheres(
-            capture.linear([i])[0], capture.field_mm, rig.camera.position_mm, spheres, capture.files[i], dome
+            capture.linear([i])[0],
+            capture.field_mm,
+            rig.camera.position_mm,
+            spheres,
+            str(capture.folder / capture.files[i]) if capture.folder is not None else capture.files[i],
+            dome,
         )
         lights[k] = dataclasses.replace(lights[k], position_mm=pos)
         spreads[k] = spread

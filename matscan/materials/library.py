@@ -202,8 +202,8 @@ def read_any(path: str | Path, normal_convention: str = "auto") -> MapSet:
     if not path.is_dir():
         raise input_error(path, "no such map folder or panel image")
     names = {p.stem for p in path.iterdir()}
-    if {"diffuse", "specular", "roughness", "normal"} <= names:
-        return read_mapset(path)
+    if (path / "mapset.json").is_file() or {"diffuse", "specular", "roughness", "normal"} <= names:
+        return read_mapset(path)  # a matscan map set, even with a map missing (read_mapset names it)
     return read_map_folder(path, normal_convention)
 
 

@@ -132,6 +132,8 @@ class ReconstructConfig:
             raise MatscanError(f"shared_f0: {self.shared_f0!r} must be True, False or None (lightpos.SHARED_F0)")
         if self.shared_f0 is not None and not self.self_calibrate_positions:
             raise MatscanError("shared_f0: needs self_calibrate_positions (it is a setting of the positions' fit)")
+        if self.emissive and self.refine == "off":
+            raise MatscanError("emissive: the emissive map is fitted by refinement; drop --emissive or --refine off")
         if self.led_gradient not in LED_GRADIENTS:
             raise MatscanError(f"led_gradient: {self.led_gradient!r} is not one of {', '.join(LED_GRADIENTS)}")
         if self.led_gradient != "auto" and not self.self_calibrate:
