@@ -297,8 +297,10 @@ def run_study(
 
     check_methods(methods, encodings)
     rig = resolve_rig(rig_name)
-    for subset in lights:
-        rig.subset(subset)  # unknown subsets fail here, not in a worker
+    for subset in lights:  # unknown subsets fail here, not in a worker
+        if str(subset) not in rig.subsets:
+            names = ", ".join(rig.subsets) or "none"
+            raise MatscanError(f"--lights: {subset!r} is not one of the light counts of rig {rig.name} ({names})")
     work = [
         (n, m, e, s, tuple(methods), rig_name, refine_steps, noise)
         for n, m in materials

@@ -126,6 +126,8 @@ def test_study_refuses_bad_methods_and_a_full_folder_before_working(tmp_path):
         evaluate_to_folder(materials, tmp_path / "a", ["1"], ["nets:missing.safetensors"], ["srgb8"])
     with pytest.raises(MatscanError, match="'jpeg' is not one of"):
         evaluate_to_folder(materials, tmp_path / "a", ["1"], ["fit"], ["jpeg"])
+    with pytest.raises(MatscanError, match=r"--lights: '0' is not one of the light counts of rig dome24 \(1, 2, 3, 6,"):
+        evaluate_to_folder(materials, tmp_path / "a", ["1", "0"], ["fit"], ["srgb8"])
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "x").write_text("")
     with pytest.raises(MatscanError, match="not empty"):

@@ -135,6 +135,13 @@ def test_a_capture_below_the_output_is_never_replaced(capture, capsys, tmp_path)
     assert_refused(argv, capsys, lab, "holds a capture (cap/capture.json)")
 
 
+def test_too_few_photos_to_self_calibrate_names_the_flag_that_asked(capture, capsys, tmp_path):
+    # --shared-f0 implies the self-calibration, which 6 photos cannot support
+    argv = ["reconstruct", str(capture), "--out", str(tmp_path / "o"), "--model", "none", "--shared-f0"]
+    assert_refused(argv, capsys, capture.parent, "--shared-f0")
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_simulated_capture_is_replaced_by_simulate_again(tmp_path, capsys):
     out = tmp_path / "sim"
     argv = ["simulate", "@sample", "--out", str(out), "--size", "16", "--lights", "6"]
