@@ -9,7 +9,10 @@ From nearcal-calibrated/calibrations-s128.json (each calibration the bench's
 whether its intensities were read) and the domes' true places, drawn as
 bench/nearcal.py draws them. ``python runs/nearcal_merge.py`` from the repository root;
 ``--from-cache=DIR`` first adds to the file every calibration in the bench's cache DIR;
-``--subsets`` instead prints every subset of the four merged; ``--to-cache=DIR`` writes
+``--subsets`` instead prints every subset of the four merged; ``--with-own`` instead
+compares, for each of the four on each dome, its own places, the merge of the other
+three, and the mean of the two (a capture's own fit averaged with a merge it is not in);
+``--to-cache=DIR`` writes
 the file's calibrations to DIR as that cache, so that the bench reuses them on a new
 machine."""
 
@@ -124,6 +127,40 @@ def subsets(cal: dict, nominal) -> None:
         print(f"{name:34s} {len(v):5d} {statistics.mean(e):12.2f} {max(e):8.2f} {statistics.mean(shift):+13.2f}")
 
 
+def with_own(cal: dict, nominal) -> None:
+    """Each of the four's own places, the other three merged, and the two averaged (mm off,
+    over the domes where all four were calibrated; the mean, the largest, and on how many
+    domes the average beats both: it cannot be worse than both, the mean distance being
+    convex)."""
+    rows: dict[str, list[tuple[float, float, float]]] = {k: [] for k in FOUR}
+    for draw in (1, 2, 0):
+        for i in range(13):
+            got = [cal.get(f"{k}-128-seed{draw}-{i}") for k in FOUR]
+            if None in got:
+                continue
+            delta = (torch.rand(24, 3, generator=torch.Generator().manual_seed(200 + i + 1000 * draw)) * 2 - 1) * 5
+            true = moved(nominal, delta).position.double()
+            places = [torch.tensor(c["light_positions_mm"], dtype=true.dtype) for c in got]
+            for j, name in enumerate(FOUR):
+                others = [places[k] for k in range(len(FOUR)) if k != j and got[k]["read"]]
+                if got[j]["read"] and others:
+                    three = merged(others, False)
+                    both = (places[j] + three) / 2
+                    rows[name].append((error(places[j], true), error(three, true), error(both, true)))
+    print(
+        f"{'capture':8s} domes  own: mean  largest  others merged: mean  largest  the two averaged: mean  largest"
+        "  beats both"
+    )
+    for name, v in rows.items():
+        mean = [statistics.mean(r[k] for r in v) for k in range(3)]
+        top = [max(r[k] for r in v) for k in range(3)]
+        wins = sum(r[2] < min(r[0], r[1]) for r in v)
+        print(
+            f"{name:8s} {len(v):5d} {mean[0]:10.2f} {top[0]:8.2f} {mean[1]:20.2f} {top[1]:8.2f} {mean[2]:23.2f} "
+            f"{top[2]:8.2f} {wins:11d}"
+        )
+
+
 def main() -> None:
     file = HERE / "nearcal-calibrated" / "calibrations-s128.json"
     for a in sys.argv[1:]:
@@ -136,6 +173,9 @@ def main() -> None:
     nominal = builtin_rig("dome24").light_set()
     if "--subsets" in sys.argv:
         subsets(cal, nominal)
+        return
+    if "--with-own" in sys.argv:
+        with_own(cal, nominal)
         return
     rows = []
     print("draw dome  each of the four's mean error (mean radial shift; mm; - unread)")
