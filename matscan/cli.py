@@ -829,7 +829,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         choices=["auto", "on", "off"],
         help="refine by inverse rendering (auto, lm solver with the networks: 1 photo, the networks alone; "
-        "2 or 3, networks + solver unless the solver alone predicts photos left out at least 5% better; from 4, "
+        "2 or 3, networks + solver unless the solver alone predicts photos left out at least 5%% better; from 4, "
         "always; adam: from 10; always without networks; docs/results.md)",
     )
     p.add_argument(

@@ -12,6 +12,32 @@ from matscan.cli import main
 from matscan.imagefile import read_image
 
 
+def _commands(parser) -> list[list[str]]:
+    """Every command and subcommand of ``parser``, as argument lists."""
+    import argparse
+
+    found = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found.append([name])
+                found += [[name, *rest] for rest in _commands(sub)]
+    return found
+
+
+def test_every_command_prints_its_help(capsys):
+    # argparse formats help lazily: a stray % in one option's text fails only there
+    from matscan.cli import build_parser
+
+    commands = _commands(build_parser())
+    assert ["reconstruct"] in commands and ["rig", "from-lp"] in commands
+    for argv in commands:
+        with pytest.raises(SystemExit) as exc:
+            main([*argv, "--help"])
+        assert exc.value.code == 0, argv
+        assert "usage: matscan " + " ".join(argv) in capsys.readouterr().out
+
+
 def test_simulate_render_sheet(tmp_path, capsys):
     assert main(["simulate", "@sample", "--out", str(tmp_path / "c"), "--lights", "6", "--size", "32"]) == 0
     assert "wrote 6 photos" in capsys.readouterr().out
