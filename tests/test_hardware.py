@@ -36,7 +36,7 @@ def lit(levels: dict) -> list:
 
 def test_protocol_commands_and_replies():
     c, levels, _ = controller()
-    assert c.handle("HELLO") == "OK matscan-led/1 leds=24 backlight=green,blue max_level=1000 fw=1.0.0"
+    assert c.handle("HELLO") == "OK matscan-led/1 leds=24 backlight=green,blue max_level=1000 fw=1.0.1"
     assert lit(levels) == []  # everything starts off
     assert c.handle("LED 5 500") == "OK" and lit(levels) == ["5"] and levels[5] == 500
     # one ring LED at a time: switching another on switches the first off
@@ -89,23 +89,43 @@ def test_watchdog_turns_everything_off_when_the_host_is_silent():
 
 def test_board_main_with_the_board_faked(monkeypatch):
     """board_main as on the RP2040: machine, select, sys.stdin/stdout and time.ticks_*
-    faked; the pins it drives and the watchdog it feeds are recorded."""
-    duty: dict = {}
+    faked; the pins it drives and the watchdog it feeds are recorded. The fake board
+    routes PWM as the RP2040 does: GPIO n is channel n & 1 of slice (n >> 1) & 7, so a
+    pin in PWM mode outputs whatever duty its slice's channel has, whichever pin set it
+    (GP0 and GP16 share one)."""
+    mode: dict = {}  # pin -> "pwm" or the plain output's value
+    slice_duty: dict = {}  # (slice, channel) -> duty
     fed = []
+    seen = []  # after each command: the pins that are on
+
+    def slot(n):
+        return (n >> 1) & 7, n & 1
 
     class Pin:
-        def __init__(self, n):
+        OUT = 1
+
+        def __init__(self, n, mode_=None, value=None):
             self.n = n
+            if mode_ is not None:
+                assert mode_ == Pin.OUT
+                mode[n] = value or 0
 
     class PWM:
         def __init__(self, pin):
             self.pin = pin.n
+            mode[self.pin] = "pwm"
 
         def freq(self, hz):
             assert hz == fw.PWM_HZ
 
         def duty_u16(self, value):
-            duty[self.pin] = value
+            slice_duty[slot(self.pin)] = value
+
+        def deinit(self):
+            slice_duty[slot(self.pin)] = 0
+
+    def on_pins():
+        return {n for n, m in mode.items() if (slice_duty.get(slot(n), 0) if m == "pwm" else m)}
 
     class WDT:
         def __init__(self, timeout):
@@ -115,13 +135,15 @@ def test_board_main_with_the_board_faked(monkeypatch):
             fed.append(1)
 
     machine = types.SimpleNamespace(Pin=Pin, PWM=PWM, WDT=WDT)
-    text = "HELLO\nLED 2 1000\nBACK blue 500\nSTATUS\n"
+    text = "HELLO\nLED 16 1000\nLED 2 1000\nBACK blue 500\nLED 10 700\nSTATUS\n"
     pos = [0]
 
     class Stdin:
         def read(self, n):
             c = text[pos[0]]
             pos[0] += 1
+            if c == "\n":
+                seen.append(None)  # the reply to this line comes before the next read
             return c
 
     class Poll:
@@ -132,19 +154,27 @@ def test_board_main_with_the_board_faked(monkeypatch):
             return [1] if pos[0] < len(text) else []
 
     out = []
+
+    def write(text):
+        out.append(text)
+        seen[-1] = on_pins()
+
     fake_time = types.SimpleNamespace(ticks_ms=lambda: 5, ticks_diff=lambda a, b: a - b)
     monkeypatch.setitem(sys.modules, "machine", machine)
     monkeypatch.setitem(sys.modules, "time", fake_time)
     monkeypatch.setattr("select.poll", lambda: Poll())
     monkeypatch.setattr("sys.stdin", Stdin())
-    monkeypatch.setattr("sys.stdout", types.SimpleNamespace(write=out.append))
-    fw.board_main(running=lambda: pos[0] < len(text) or len(out) < 4)
+    monkeypatch.setattr("sys.stdout", types.SimpleNamespace(write=write))
+    fw.board_main(running=lambda: pos[0] < len(text) or len(out) < 6)
     monkeypatch.undo()
     replies = "".join(out).splitlines()
-    assert replies[0].startswith("OK matscan-led/1") and replies[1] == "OK" and replies[2] == "OK"
-    assert replies[3].startswith("OK led=- level=500 back=blue")
-    assert duty[fw.LED_PINS[2]] == 0 and duty[fw.BLUE_PIN] == 500 * 65535 // 1000
-    assert all(duty[p] == 0 for p in fw.LED_PINS)
+    assert replies[0].startswith("OK matscan-led/1") and replies[1:5] == ["OK"] * 4
+    assert replies[5].startswith("OK led=10 level=700 back=off")
+    pin = dict(enumerate(fw.LED_PINS))
+    # LED 16's twin is LED 0 (GP16, GP0), the blue backlight's LED 12 (GP28, GP12), LED
+    # 10's LED 23 (GP10, GP26): each lights alone
+    assert seen[1] == {pin[16]} and seen[2] == {pin[2]} and seen[3] == {fw.BLUE_PIN} and seen[4] == {pin[10]}
+    assert slot(pin[16]) == slot(pin[0]) and slot(fw.BLUE_PIN) == slot(pin[12]) and slot(pin[10]) == slot(pin[23])
     assert fed  # the hardware watchdog was fed
 
 
@@ -164,7 +194,7 @@ def board():
 
 def test_controller_over_a_pseudo_terminal(board):
     b, leds = board
-    assert leds.n_leds == 24 and leds.firmware == "1.0.0"
+    assert leds.n_leds == 24 and leds.firmware == "1.0.1"
     leds.led(5, 0.5)
     assert b.lit() == ["5"] and b.levels[5] == 500
     assert leds.status()["led"] == "5"

@@ -10,7 +10,7 @@
 # off; a hardware watchdog resets a hung board, and every pin starts low (off).
 
 PROTOCOL = "matscan-led/1"
-FIRMWARE = "1.0.0"
+FIRMWARE = "1.0.1"
 N_LEDS = 24
 MAX_LEVEL = 1000  # per mille of full brightness
 WATCHDOG_MS = 5000
@@ -149,16 +149,29 @@ def board_main(running=lambda: True):
     import machine
 
     wdt = machine.WDT(timeout=2000)
-    pwm = {}
-    for k, pin in enumerate(LED_PINS):
-        pwm[k] = machine.PWM(machine.Pin(pin))
-    pwm["green"] = machine.PWM(machine.Pin(GREEN_PIN))
-    pwm["blue"] = machine.PWM(machine.Pin(BLUE_PIN))
-    for p in pwm.values():
-        p.freq(PWM_HZ)
+    pins = dict(enumerate(LED_PINS))
+    pins["green"], pins["blue"] = GREEN_PIN, BLUE_PIN
+    for pin in pins.values():  # every pin a plain output, low (off)
+        machine.Pin(pin, machine.Pin.OUT, value=0)
+    lit = {}
 
     def outputs(channel, level):
-        pwm[channel].duty_u16(level * 65535 // MAX_LEVEL)
+        # A pin is a PWM output only while its channel is lit. The RP2040's pins 16 apart
+        # (GP0 and GP16, GP10 and GP26, GP11 and GP27, GP12 and GP28) share one PWM slice
+        # and channel, so a pin left in PWM mode would light with its twin; the Controller
+        # switches every channel off before it lights one, so no twin is ever in PWM mode.
+        pin = pins[channel]
+        if level <= 0:
+            p = lit.pop(channel, None)
+            if p is not None:
+                p.duty_u16(0)
+                p.deinit()
+            machine.Pin(pin, machine.Pin.OUT, value=0)  # back to a plain output, low
+            return
+        if channel not in lit:
+            lit[channel] = machine.PWM(machine.Pin(pin))
+            lit[channel].freq(PWM_HZ)
+        lit[channel].duty_u16(level * 65535 // MAX_LEVEL)
 
     poll = select.poll()
     poll.register(sys.stdin, select.POLLIN)
