@@ -373,6 +373,22 @@ def test_black_and_saturated_photos_are_warned_about(tmp_path):
     assert not any("black" in w or "saturated" in w for w in check_capture(cap, ReconstructConfig()))
 
 
+def test_photos_that_do_not_cover_the_field_square_are_warned_about(tmp_path):
+    # a 3:2 camera over dome24's square field: 120 mm over 24 px and 16 px
+    from dataclasses import replace
+
+    from matscan.reconstruct import check_capture
+
+    cap, _ = _capture(tmp_path, 24, [0, 4, 8])
+    wide = replace(cap, images=cap.images[:, :, :16, :], saturated=cap.saturated[:, :, :16, :])
+    said = [w for w in check_capture(wide, ReconstructConfig()) if "not square" in w]
+    assert said == [
+        "the photos are 24×16 px but the field is 120×120 mm, so a pixel is 5×7.5 mm, not square: frame the camera "
+        "so that the photos cover the rig's field exactly (docs/hardware.md), or the maps are stretched"
+    ]
+    assert not any("not square" in w for w in check_capture(cap, ReconstructConfig()))
+
+
 def test_many_partly_saturated_photos_are_warned_about_in_one_line_that_names_each(tmp_path):
     from dataclasses import replace
 

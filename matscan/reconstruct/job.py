@@ -217,6 +217,11 @@ def _bright_fraction(capture: Capture, i: int) -> float:
     return count / capture.images[i].numel()
 
 
+#: ``check_capture`` warns where a pixel's width and height (the field over the photos'
+#: size) differ by more than this share: photos framed otherwise than the rig's field.
+ASPECT_TOLERANCE = 0.01
+
+
 def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
     """Warnings about a capture, each saying what to do: saturated or black photos,
     missing lights, and what reading and calibrating it found (``capture.meta["warnings"]``)."""
@@ -239,7 +244,7 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
             f"{len(partly)} of {len(capture.files)} photos have {least:.1%} to {most:.1%} of their "
             "pixels saturated ("
             + ", ".join(f"{file} {frac:.1%}" for file, frac in partly)
-            + "); lower the exposure (they are left out of the fit)"
+            + "); lower the exposure (the saturated pixels are left out of the fit)"
         )
     else:
         warnings += [
@@ -252,6 +257,13 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
         )
     else:
         warnings += [f"{f}: the photo is black (did its light fail?); retake it or leave it out" for f in dark]
+    (px, py), (h, w) = capture.mm_per_pixel, capture.size
+    if abs(px / py - 1) > ASPECT_TOLERANCE:
+        warnings.append(
+            f"the photos are {w}×{h} px but the field is {capture.field_mm[0]:g}×{capture.field_mm[1]:g} mm, so a "
+            f"pixel is {px:.3g}×{py:.3g} mm, not square: frame the camera so that the photos cover the rig's field "
+            "exactly (docs/hardware.md), or the maps are stretched"
+        )
     if not capture.rig.per_image_geometry:
         missing = sorted(set(range(len(capture.rig.lights))) - {k for k in capture.light_indices if k is not None})
         if missing:
