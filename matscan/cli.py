@@ -422,10 +422,23 @@ def cmd_rig_to_lp(args: argparse.Namespace) -> str:
     from matscan.outputs import claim_output
     from matscan.rig import resolve_rig
 
-    rig = resolve_rig(args.rig)
-    inputs = [args.rig] if str(args.rig).endswith(".json") else []
+    files = None
+    if (Path(args.rig) / "capture.json").is_file():  # a capture: its photos' lights, named by the photos
+        from dataclasses import replace
+
+        from matscan.capture import load_capture
+        from matscan.outputs import capture_inputs
+
+        capture = load_capture(args.rig)
+        if capture.rig.per_image_geometry or None in capture.light_indices:
+            raise input_error(Path(args.rig), "has a light of its own for each photo; an .lp lists a rig's lights")
+        rig = replace(capture.rig, lights=tuple(capture.rig.lights[k] for k in capture.light_indices))
+        files, inputs = list(capture.files), capture_inputs(args.rig)
+    else:
+        rig = resolve_rig(args.rig)
+        inputs = [args.rig] if str(args.rig).endswith(".json") else []
     with claim_output(args.out, "rig to-lp", inputs, kind="file", overwrite=args.overwrite):
-        write_text(args.out, lp_text(rig, y=args.y))
+        write_text(args.out, lp_text(rig, files, y=args.y))
     kinds = sum(lt.directional for lt in rig.lights)
     note = "" if kinds == len(rig.lights) else " (point lights written as directions from the field's centre)"
     return f"rig to-lp: wrote {args.out} ({len(rig.lights)} lights{note})"
@@ -1104,7 +1117,11 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--overwrite", action="store_true", help="replace an existing file")
     q.set_defaults(func=cmd_rig_from_lp)
     q = rig_sub.add_parser("to-lp", help="an RTI .lp file of a rig's lights (directions from the field's centre)")
-    q.add_argument("rig", metavar="RIG", help="built-in rig name or rig .json file")
+    q.add_argument(
+        "rig",
+        metavar="RIG",
+        help="built-in rig name, rig .json file, or a capture folder (its photos' lights, named by the photos)",
+    )
     q.add_argument("--out", required=True, help=".lp file to write")
     q.add_argument("--y", choices=LP_Y, default=LP_Y_DEFAULT, help=y_help)
     q.add_argument("--overwrite", action="store_true", help="replace an existing file")

@@ -118,6 +118,22 @@ def test_cli_rig_from_lp_and_to_lp(tmp_path, capsys):
     assert "nothing.lp: no such light file" in capsys.readouterr().err
 
 
+def test_cli_rig_to_lp_of_a_capture_names_its_photos(tmp_path):
+    # a rig file holds no photo names; an imported capture gives them back to RTI software
+    folder = tmp_path / "rti"
+    folder.mkdir()
+    lines = ["image01.jpg 0 0 1", "image02.jpg 0.6 0 0.8", "image03.jpg 0 0.6 0.8"]
+    for line in lines:
+        name = line.split()[0]
+        (folder / name).write_bytes((ICON / name).read_bytes())
+    (folder / "lights.lp").write_text("3\n" + "\n".join(lines) + "\n")
+    import_rti(folder, tmp_path / "cap")
+    assert main(["rig", "to-lp", str(tmp_path / "cap"), "--out", str(tmp_path / "back.lp")]) == 0
+    back, given = parse_lp((tmp_path / "back.lp").read_text()), read_lp(folder / "lights.lp")
+    assert back.files == given.files == ("image01.jpg", "image02.jpg", "image03.jpg")
+    np.testing.assert_allclose(np.array(back.directions), np.array(given.directions), atol=1e-8)
+
+
 def test_hsh_fits_its_own_span_exactly_and_matches_numpy():
     g = torch.Generator().manual_seed(1)
     k = 30
