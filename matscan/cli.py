@@ -412,7 +412,7 @@ def cmd_rig_from_lp(args: argparse.Namespace) -> str:
         write_text(args.out, dumps(rig_to_dict(rig), str(args.out)))
     return (
         f"rig from-lp: wrote {args.out} ({len(rig.lights)} directional lights, orthographic camera, "
-        f"field {field[0]:g}×{field[1]:g} mm, .lp y {args.y})"
+        f"field {field[0]:.4g}×{field[1]:.4g} mm, .lp y {args.y})"
     )
 
 
@@ -545,8 +545,13 @@ def cmd_rig_from_spheres(args: argparse.Namespace) -> str:
         rig, spreads = rig_from_spheres(load_capture(folder), spheres, dome)
         write_text(args.out, dumps(rig_to_dict(rig), str(args.out)))
     worst = max(spreads.values(), default=0.0)
-    how = "rays within" if dome is None else "on the dome; the spheres agree within"
-    return f"rig from-spheres: wrote {args.out} ({len(spreads)} lights placed; {how} {worst:.2f} mm)"
+    if dome is None:
+        how = f"rays within {worst:.2f} mm"
+    elif len(spheres) == 1:
+        how = f"on the dome of radius {dome[1]:g} mm"
+    else:
+        how = f"on the dome; the spheres agree within {worst:.2f} mm"
+    return f"rig from-spheres: wrote {args.out} ({len(spreads)} lights placed; {how})"
 
 
 def cmd_import_rti(args: argparse.Namespace) -> str:
@@ -569,7 +574,7 @@ def cmd_import_rti(args: argparse.Namespace) -> str:
     h, w = cap.size
     return (
         f"import-rti: wrote {out} ({len(cap.files)} photos of {w}×{h} px, directional lights, "
-        f"field {cap.field_mm[0]:g}×{cap.field_mm[1]:g} mm, .lp y {args.y})"
+        f"field {cap.field_mm[0]:.4g}×{cap.field_mm[1]:.4g} mm, .lp y {args.y})"
     )
 
 
