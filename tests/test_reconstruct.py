@@ -196,6 +196,12 @@ def test_leave_out_validation(tmp_path, capsys):
     rec = json.loads((tmp_path / "o" / "matscan.json").read_text())
     val = rec["validation"]
     assert len(val["left_out"]) == 4 and val["rmse_fitted"] <= val["rmse_left_out"] < 0.1
+    # the report says which photos were left out and what the second fit scored, and the
+    # timings account for that fit
+    page = (tmp_path / "o" / "report.html").read_text()
+    assert page.count("(left out of the validation)") == 4
+    assert f"{val['rmse_left_out']:.5f} / {val['rmse_fitted']:.5f}" in page
+    assert 0 < rec["timings_s"]["validation_s"] < rec["timings_s"]["total_s"]
 
 
 def test_end_to_end_known_maps_and_novel_lights(tmp_path):

@@ -742,8 +742,12 @@ def reconstruct(
 
             anyrig = load_anyrig(cfg.anyrig)
             anyrig_name = os.path.relpath(anyrig_path(cfg.anyrig).resolve(), claim.path)
+        t_validation = time.perf_counter()
         validation = leave_out_validation(capture, cfg.validate, cfg, nets, anyrig) if cfg.validate else None
+        t_validation = time.perf_counter() - t_validation
         res = reconstruct_capture(capture, cfg, nets, progress, anyrig)
+        if validation is not None:  # its own reconstruction, without the photos it leaves out
+            res.timings["validation_s"] = t_validation
         calibrated = capture  # before the gains: self_calibration.json composes with its calibration
         if res.light_gains is not None:  # the photos as the fit saw them, for every number below
             from matscan.reconstruct.selfcal import with_gains

@@ -133,8 +133,10 @@ def write_report(
     ``light_rows``: :func:`per_light_rows` when the caller has made them already."""
     rows, overall = light_rows if light_rows is not None else per_light_rows(capture, maps, scale)
     e = html.escape
+    left_out = set(record.get("validation", {}).get("left_out", []))
     table = "\n".join(
-        f"<tr><td>{e(r['file'])}</td><td>{'' if r['light'] is None else r['light']}</td>"
+        f"<tr><td>{e(r['file'])}{'<br>(left out of the validation)' if r['file'] in left_out else ''}</td>"
+        f"<td>{'' if r['light'] is None else r['light']}</td>"
         f"<td><img src='{r['photo']}' alt='photo'></td><td><img src='{r['render']}' alt='re-rendering'></td>"
         f"<td><img src='{r['error']}' alt='error'></td><td>{r['rmse']:.4f}</td></tr>"
         for r in rows
@@ -163,13 +165,26 @@ def write_report(
         "refined": record.get("refined"),
         "re-rendering RMSE (all inputs)": round(overall, 5),
         "intensity scale": round(scale, 4),
-        "timings (s)": record.get("timings_s"),
+        "timings (s; the total, written last, is in matscan.json)": record.get("timings_s"),
     }
     if record.get("start") == "any-rig network" and record.get("model", {}).get("anyrig_file"):
         numbers["any-rig network"] = record["model"]["anyrig_file"]
     if "validation" in record:
-        numbers["leave-out validation"] = record["validation"]
-    numbers_html = "\n".join(f"<tr><th>{e(k)}</th><td>{e(json.dumps(v))}</td></tr>" for k, v in numbers.items())
+        v = record["validation"]
+        numbers["validation: photos left out of a second fit"] = ", ".join(v["left_out"])
+        numbers["validation: re-rendering RMSE, left out / fitted"] = (
+            f"{v['rmse_left_out']:.5f} / {v['rmse_fitted']:.5f}"
+        )
+        numbers["validation: left out, as displayed (sRGB)"] = (
+            f"PSNR {v['psnr_left_out']:.2f} dB, SSIM {v['ssim_left_out']:.3f}"
+        )
+        if "hsh" in v:
+            numbers["validation: an HSH fit (order 2) to the same photos"] = (
+                f"PSNR {v['hsh']['psnr_left_out']:.2f} dB, SSIM {v['hsh']['ssim_left_out']:.3f}"
+            )
+    numbers_html = "\n".join(
+        f"<tr><th>{e(k)}</th><td>{e(v if isinstance(v, str) else json.dumps(v))}</td></tr>" for k, v in numbers.items()
+    )
     warnings = "".join(f"<li>{e(w)}</li>" for w in record.get("warnings", [])) or "<li>none</li>"
     cam = capture.rig.camera_point if not capture.rig.per_image_geometry else tuple(capture.lights.camera[0].tolist())
     viewer_cfg = {
