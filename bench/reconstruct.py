@@ -10,6 +10,10 @@ Printed last: seconds per million pixel-lights for each case over the smallest
 case's, so linear scaling in pixels × lights reads as ratios near 1 (measured in one
 run: these machines are noisy).
 
+With ``--allocator`` each case runs again with ``MATSCAN_MALLOC=system`` (glibc's own
+allocation policy, not the one the command sets: ``matscan.allocator``), and the ratios
+of time and memory are printed.
+
 With ``--mirrors`` each case runs again with ``reconstruct --mirrors`` (the networks'
 maps averaged over the rig's mirrors), and the ratio of the two times is printed.
 
@@ -21,7 +25,7 @@ capture naming the plain dome24, and each case runs again with ``--self-calibrat
 (one F0 for the dielectric pixels, its default), with their ratios to the plain run.
 
 Run by hand: .venv/bin/python bench/reconstruct.py [SIZE ...] [--lights 6,24] [--solver lm|adam] [--mirrors]
-[--self-calibrate]
+[--allocator] [--self-calibrate]
 (sizes default 256 512 1024; 3072 takes minutes and GBs: ask for it by name).
 """
 
@@ -40,7 +44,9 @@ def matscan(*args: str) -> list[str]:
     return [sys.executable, "-m", "matscan.cli", *args]
 
 
-def run_case(capture: Path, out: Path, solver: str, extra: tuple[str, ...] = ()) -> tuple[float, float]:
+def run_case(
+    capture: Path, out: Path, solver: str, extra: tuple[str, ...] = (), env: dict[str, str] | None = None
+) -> tuple[float, float]:
     """(wall seconds, peak RSS GiB from the child's rusage) of one reconstruction in a fresh process."""
     t0 = time.perf_counter()
     pid = os.fork()
@@ -48,7 +54,8 @@ def run_case(capture: Path, out: Path, solver: str, extra: tuple[str, ...] = ())
         null = os.open(os.devnull, os.O_WRONLY)
         os.dup2(null, 1)
         os.dup2(null, 2)
-        os.execv(sys.executable, matscan("reconstruct", str(capture), "--out", str(out), "--solver", solver, *extra))
+        command = matscan("reconstruct", str(capture), "--out", str(out), "--solver", solver, *extra)
+        os.execve(sys.executable, command, {**os.environ, **(env or {})})
     _, status, usage = os.wait4(pid, 0)
     seconds = time.perf_counter() - t0
     if os.waitstatus_to_exitcode(status) != 0:
@@ -106,6 +113,11 @@ def main() -> None:
         action="store_true",
         help="LEDs off their rig-file places; each case also with the three self-calibrations",
     )
+    parser.add_argument(
+        "--allocator",
+        action="store_true",
+        help="each case also with MATSCAN_MALLOC=system (glibc's own policy), and the ratio of the two",
+    )
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -124,6 +136,14 @@ def main() -> None:
                 work = size * size * int(lights) / 1e6
                 rows.append((size, int(lights), seconds, peak, seconds / work))
                 print(f"{size:>6}² {lights:>3} lights: {seconds:7.1f} s wall, peak RSS {peak:5.2f} GiB", flush=True)
+                if args.allocator:
+                    env = {"MATSCAN_MALLOC": "system"}
+                    more, more_peak = run_case(cap, Path(tmp) / f"system{size}_{lights}", args.solver, env=env)
+                    print(
+                        f"{'':>7} {'':>3} glibc's own policy: {more:7.1f} s wall, peak RSS {more_peak:5.2f} GiB; "
+                        f"the command's: {seconds / more:.2f} × the time, {peak / more_peak:.2f} × the memory",
+                        flush=True,
+                    )
                 if args.mirrors:
                     more, peak = run_case(cap, Path(tmp) / f"mirrors{size}_{lights}", args.solver, ("--mirrors",))
                     print(

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import signal
 import sys
 import time
@@ -1411,6 +1412,17 @@ def _terminate(signum: int, frame: object) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    if argv is None:  # the command itself: started again once with glibc told to reuse freed memory
+        from matscan.allocator import environment
+
+        env = environment()
+        if env is not None:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            try:
+                os.execve(sys.executable, [sys.executable, "-m", "matscan.cli", *sys.argv[1:]], env)
+            except OSError:  # not started again: run as it is
+                pass
     parser = build_parser()
     args = parser.parse_args(_join_vectors(sys.argv[1:] if argv is None else argv))
     previous = signal.signal(signal.SIGTERM, _terminate)
