@@ -551,8 +551,9 @@ def reconstruct_capture(
     if anyrig is not None and nets is None and n < ANYRIG_MIN_PHOTOS:
         anyrig = None
         warnings.append("one photo: starting from flat maps, not the any-rig network's (docs/rti.md)")
-    if misfit is not None and anyrig is None:  # with the any-rig network asked for, this is its use
-        warnings.append(f"{misfit}; starting refinement from flat maps")
+    if misfit is not None:
+        if anyrig is None:  # with the any-rig network asked for, this is its use: no warning
+            warnings.append(f"{misfit}; starting refinement from flat maps")
     elif nets is not None and (unnamed := unnamed_subset(capture)) is not None:
         warnings.append(unnamed)
     t0 = time.perf_counter()
