@@ -8,13 +8,18 @@ intensity scales (and optional flat fields and near-light positions) from a grey
      "light_scales": {"0": 1.02, "1": 0.97, …},  # per rig light: photo = scale × model
      "flat_fields": {"0": "flat_00.exr", …},   # optional: per light, mean 1
      "light_positions_mm": {"0": [x, y, z], …},  # optional: near lights' fitted places
+     "exposure_s": 0.005, "led_level": 1.0,    # optional: the grey card's exposure and LED level
      "grey_albedo": 0.18}
 
 A capture that names it is corrected on reading for reconstruction
 (:func:`apply_calibration`): colour matrix first, then each photo divided by its
 light's scale and flat field; lights with a fitted position
 (:func:`fit_light_positions`, ``calibrate --positions``) are moved there, each LED
-still aimed where the rig file aims it. Every field is checked there (errors name the file
+still aimed where the rig file aims it. The scales hold for photos taken at the grey card's
+exposure and LED level, which ``calibrate`` copies from the card's ``capture.json``
+(``acquisition``) where ``matscan capture`` recorded them; a capture that records another
+exposure or level has the scales multiplied by the ratio of exposure × level
+(:func:`exposure_ratio`). Every field is checked there (errors name the file
 and the field); plausible-but-wrong calibrations become warnings in the capture's
 ``meta["warnings"]``. :func:`check_chart` and :func:`check_scales` give the
 warnings about a chart photo and about computed scales; :func:`calibrate` is
@@ -631,8 +636,10 @@ def write_calibration(
     scales: Mapping[str, float | Sequence[float]] | None,
     flats: dict[str, Tensor] | None = None,
     positions: Mapping[str, Sequence[float]] | None = None,
+    exposure: Mapping[str, float] | None = None,
 ) -> dict[str, Any]:
-    """Write ``calibration.json`` (and flat-field EXRs beside it)."""
+    """Write ``calibration.json`` (and flat-field EXRs beside it); ``exposure`` holds
+    ``exposure_s`` and ``led_level``, the grey card's, where they are known."""
     from matscan.imagefile import write_image
 
     doc: dict[str, Any] = {"format": CALIBRATION_FORMAT, "grey_albedo": GREY_CARD}
@@ -645,6 +652,9 @@ def write_calibration(
         }
     if positions:
         doc["light_positions_mm"] = {k: [round(float(v), 3) for v in p] for k, p in positions.items()}
+    if scales and exposure and "exposure_s" in exposure:
+        doc["exposure_s"] = float(exposure["exposure_s"])
+        doc["led_level"] = float(exposure.get("led_level", 1.0))
     if flats:
         doc["flat_fields"] = {}
         for k, t in flats.items():
@@ -672,6 +682,9 @@ class Calibration:
         flat_fields: per rig light, (1, H, W) of mean 1; empty unless asked for.
         warnings: one line each, saying what to check (:func:`check_chart`, :func:`check_scales`).
         light_fit: the near lights' fitted positions (:func:`fit_light_positions`), when asked for.
+        exposure_s: the grey card's exposure (s), where its capture recorded one; the scales
+            hold at that exposure and ``led_level``.
+        led_level: the LEDs' level (0-1) of the grey card's photos, where recorded.
     """
 
     path: Path
@@ -681,6 +694,8 @@ class Calibration:
     flat_fields: dict[str, Tensor]
     warnings: tuple[str, ...]
     light_fit: LightFit | None = None
+    exposure_s: float | None = None
+    led_level: float | None = None
 
 
 CHART_ENCODINGS = ("srgb", "linear")
@@ -773,8 +788,11 @@ def _calibrate(
         matrix = colour_matrix(measured, colorchecker_linear())
         residual = float((measured @ matrix.T - colorchecker_linear()).abs().mean())
     fit = None
+    exposure: dict[str, float] = {}
     if grey is not None:
         card = load_capture(grey)
+        if "exposure_s" in card.meta:
+            exposure = {k: card.meta[k] for k in ("exposure_s", "led_level") if k in card.meta}
         if matrix is not None:  # the scales divide photos already colour-corrected (apply_calibration)
             n = len(card.files)
             card = replace(card, correction=Correction(matrix, torch.ones(n, 3), (None,) * n))
@@ -784,8 +802,18 @@ def _calibrate(
             warnings += check_light_fit(fit, str(out))
         scales, flats = light_scales(card, flat_fields=flat_fields, colour=True)
         warnings += check_scales({k: sum(v) / 3 for k, v in scales.items()}, str(out))
-    write_calibration(out, matrix, scales, flats, fit.positions if fit is not None else None)
-    return Calibration(out, matrix, residual, scales, flats, tuple(warnings), fit)
+    write_calibration(out, matrix, scales, flats, fit.positions if fit is not None else None, exposure)
+    return Calibration(
+        out,
+        matrix,
+        residual,
+        scales,
+        flats,
+        tuple(warnings),
+        fit,
+        exposure.get("exposure_s"),
+        exposure.get("led_level"),
+    )
 
 
 @dataclass(frozen=True)
@@ -818,7 +846,10 @@ def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[s
     each light's position the mean of the positions the calibrations give it, each
     light's RGB scale their geometric mean; the colour matrix, grey albedo and flat fields
     must be the same in all (the same base calibration, as self-calibrations of captures
-    sharing one calibration file write them; flat-field names compared as given).
+    sharing one calibration file write them; flat-field names compared as given). Files
+    that record the exposure and LED level their scales hold at (every one or none) have
+    their scales brought to the first file's by the ratio of exposure × level, and the
+    result records the first's.
 
     Self-calibrations of captures of different samples under one dome (each capture's
     ``self_calibration.json``) place its lights with errors of their own; their mean
@@ -830,6 +861,7 @@ def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[s
         raise MatscanError("calibrate --merge: give one or more calibration files")
     per_file: list[tuple[dict[str, tuple[float, ...]], dict[str, tuple[float, ...]]]] = []  # scales, places
     base: dict[str, Any] | None = None
+    reference: tuple[float, float] | None = None
     for doc, name in zip(documents, names, strict=True):
         file_scales: dict[str, tuple[float, ...]] = {}
         file_places: dict[str, tuple[float, ...]] = {}
@@ -837,9 +869,17 @@ def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[s
         check_object(doc, name, _CALIBRATION_KEYS)
         if doc["format"] != CALIBRATION_FORMAT:
             raise MatscanError(f"{name}: format: must be {CALIBRATION_FORMAT!r}, got {short_repr(doc['format'])}")
-        rest = {k: v for k, v in doc.items() if k not in ("light_scales", "light_positions_mm")}
+        exposure = _exposure(doc, f"{name}: ")
+        own = ("light_scales", "light_positions_mm", "exposure_s", "led_level")
+        rest = {k: v for k, v in doc.items() if k not in own}
         if base is None:
-            base, first = rest, name
+            base, first, reference = rest, name, exposure
+        elif (exposure is None) != (reference is None):
+            which, other = (name, first) if exposure is None else (first, name)
+            raise MatscanError(
+                f"{which}: records no exposure where {other} does, so their scales cannot be brought "
+                "to one exposure; merge calibrations that all record it"
+            )
         elif rest != base:
             key = next(k for k in sorted(set(rest) | set(base)) if rest.get(k) != base.get(k))
             raise MatscanError(
@@ -852,6 +892,8 @@ def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[s
             rgb = check_vector(v, 3, field) if isinstance(v, (list, tuple)) else (check_number(v, field),) * 3
             for c in rgb:
                 check_number(c, field, *SCALE_LIMITS, positive=True)
+            if exposure is not None and reference is not None:  # as if taken at the first file's
+                rgb = tuple(c * reference[0] * reference[1] / (exposure[0] * exposure[1]) for c in rgb)
             file_scales[k] = rgb
         for k, v in check_object(doc.get("light_positions_mm", {}), f"{name}: light_positions_mm").items():
             field = f"{name}: light_positions_mm[{short_repr(k)}]"
@@ -872,6 +914,8 @@ def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[s
         for k, v in file_places.items():
             positions.setdefault(k, []).append(v)
     merged = dict(base or {})
+    if reference is not None:
+        merged["exposure_s"], merged["led_level"] = reference
 
     def order(d: dict[str, Any]) -> dict[str, Any]:
         return dict(sorted(d.items(), key=lambda kv: int(kv[0])))
@@ -1010,7 +1054,54 @@ _CALIBRATION_KEYS = {
     "flat_fields": False,
     "grey_albedo": False,
     "light_positions_mm": False,
+    "exposure_s": False,
+    "led_level": False,
 }
+#: Exposures (s) and LED levels as a calibration records them: a camera's shortest
+#: exposures are 1/32000 s and its longest a few minutes.
+EXPOSURE_LIMITS = (1e-6, 3600.0)
+
+
+def _exposure(doc: Mapping[str, Any], prefix: str) -> tuple[float, float] | None:
+    """A calibration's ``exposure_s`` and ``led_level`` (1 where absent), checked; None
+    where it records no exposure."""
+    if "led_level" in doc and "exposure_s" not in doc:
+        raise MatscanError(f"{prefix}led_level: given without exposure_s")
+    if "exposure_s" not in doc:
+        return None
+    seconds = check_number(doc["exposure_s"], f"{prefix}exposure_s", *EXPOSURE_LIMITS, positive=True)
+    level = check_number(doc.get("led_level", 1.0), f"{prefix}led_level", 0.0, 1.0, positive=True)
+    return seconds, level
+
+
+def exposure_ratio(capture: Capture) -> tuple[float, list[str]]:
+    """How much brighter the capture's photos are than the grey card's that its
+    calibration's scales were measured on: the ratio of exposure × LED level, the
+    capture's (``capture.meta``, from ``acquisition``) over the calibration's; 1 where
+    either does not record an exposure, with a one-line warning saying so where the
+    calibration has scales. Exposure and LED level (the PWM duty at 20 kHz, averaged
+    over the exposure) scale a photo linearly."""
+    cal = capture.calibration or {}
+    _, prefix, name = _where(capture)
+    recorded = _exposure(cal, prefix)
+    if "light_scales" not in cal:
+        return 1.0, []
+    seconds = capture.meta.get("exposure_s")
+    if recorded is None and seconds is None:
+        return 1.0, []
+    if recorded is None:
+        return 1.0, [
+            f"{name} does not record its grey card's exposure, so the photos (at {seconds:.4g} s) are "
+            "taken as made at it; calibrate again from the grey card's capture to have the ratio applied"
+        ]
+    if seconds is None:
+        return 1.0, [
+            f"{name}'s scales were measured at {recorded[0]:.4g} s (LED level {recorded[1]:g}); the capture "
+            "records no exposure, so its photos are taken as made at that exposure and level"
+        ]
+    return seconds * capture.meta.get("led_level", 1.0) / (recorded[0] * recorded[1]), []
+
+
 #: The largest magnitude of a colour matrix entry (real ones are within ±3).
 MAX_MATRIX_ENTRY = 1e3
 _LIGHT_KEY = re.compile(r"0|[1-9][0-9]{0,8}")
@@ -1167,11 +1258,12 @@ def apply_calibration(capture: Capture) -> Capture:
     if "light_positions_mm" in cal:
         moved = _positions(cal["light_positions_mm"], f"{prefix}light_positions_mm", capture.rig)
         capture = with_light_positions(capture, moved)
-    warnings = check_scales({str(k): sum(s) / 3 for k, s in scales.items()}, name)
+    ratio, warnings = exposure_ratio(capture)
+    warnings += check_scales({str(k): sum(s) / 3 for k, s in scales.items()}, name)
     if "light_scales" in cal:
         warnings += _coverage_warning(scales, capture, name)
 
-    gain = torch.tensor(
+    gain = ratio * torch.tensor(
         [scales.get(k, (1.0,) * 3) if k is not None else (1.0,) * 3 for k in capture.light_indices],
         dtype=torch.float32,
     ).reshape(-1, 3)
@@ -1188,6 +1280,8 @@ def apply_calibration(capture: Capture) -> Capture:
     if not math.isfinite(bound) or bound > torch.finfo(torch.float32).max:
         raise MatscanError(f"{place}: the calibration makes the photos overflow; check its values")
     meta = {**capture.meta, "warnings": [*capture.meta.get("warnings", []), *warnings]}
+    if ratio != 1.0:
+        meta["exposure_ratio"] = ratio
     return replace(capture, correction=correction, meta=meta)
 
 
@@ -1196,15 +1290,27 @@ def with_light_gains(capture: Capture, gains: Tensor) -> dict[str, Any]:
     scales multiplied by per-photo RGB ``gains`` (N, 3), as a calibration object that
     can be written anywhere: the colour matrix, grey albedo and light positions are kept
     as they are, flat-field files are named by absolute path, and lights the capture did
-    not photograph keep their scales. Self-calibration writes its gains this way, so a
-    later capture naming the result is corrected exactly as this one was."""
+    not photograph keep their scales. The scales then hold at the capture's exposure and
+    LED level, which the result records where the capture does (the lights it did not
+    photograph scaled by the ratio :func:`apply_calibration` applied). Self-calibration
+    writes its gains this way, so a later capture naming the result is corrected exactly
+    as this one was."""
     cal = dict(capture.calibration or {})
     cal["format"] = CALIBRATION_FORMAT
     n = len(capture.files)
     if gains.shape != (n, 3):
         raise ValueError(f"gains: expected shape ({n}, 3), got {tuple(gains.shape)}")
     before = capture.correction.gain if capture.correction is not None else torch.ones(n, 3)
-    scales = {str(k): s for k, s in cal.get("light_scales", {}).items()}
+    ratio = capture.meta.get("exposure_ratio", 1.0)
+    scales = {
+        str(k): [round(float(c) * ratio, 6) for c in (s if isinstance(s, (list, tuple)) else (s,) * 3)]
+        if ratio != 1.0
+        else s
+        for k, s in cal.get("light_scales", {}).items()
+    }
+    if "exposure_s" in capture.meta:
+        cal["exposure_s"] = capture.meta["exposure_s"]
+        cal["led_level"] = capture.meta.get("led_level", 1.0)
     for k, b, g in zip(capture.light_indices, before, gains, strict=True):
         if k is not None:
             scales[str(k)] = [round(float(v), 6) for v in b * g]

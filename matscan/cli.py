@@ -253,7 +253,8 @@ def cmd_calibrate(args: argparse.Namespace) -> str:
         parts.append(f"colour matrix (mean patch error {cal.chart_error:.4f})")
     if args.grey:
         means = [sum(s) / 3 for s in cal.light_scales.values()]
-        parts.append(f"{len(means)} light scales (RGB, mean {min(means):.3f} to {max(means):.3f})")
+        at = f" at {cal.exposure_s:.4g} s, LED level {cal.led_level:g}" if cal.exposure_s is not None else ""
+        parts.append(f"{len(means)} light scales{at} (RGB, mean {min(means):.3f} to {max(means):.3f})")
     fit = cal.light_fit
     if fit is not None and fit.moved_mm:
         moved = fit.moved_mm.values()

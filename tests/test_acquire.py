@@ -342,6 +342,70 @@ def test_calibration_targets(tmp_path):
         assert angle < 5.0
 
 
+def test_a_calibration_is_brought_to_each_captures_exposure_and_level(tmp_path):
+    """A grey card photographed at 20 ms calibrates captures of one sample taken at 10 ms,
+    5 ms, and 20 ms with the LEDs at half level, under the lower two rings' LEDs (whose
+    highlights do not saturate). The virtual camera is linear in exposure and level, so
+    the reference is the scene itself: corrected, every capture's photos agree with the
+    10 ms capture's, and reconstructed, the 5 ms capture's diffuse map is the sample's.
+    The same calibration with its exposure struck out (a calibration made before it was
+    recorded) leaves the 5 ms photos half as bright as the 10 ms capture's, with a
+    warning naming it."""
+    import json
+
+    from matscan.calibrate import apply_calibration, calibrate, with_light_gains
+    from matscan.capture.folder import with_calibration_file
+    from matscan.reconstruct import ReconstructConfig
+    from matscan.reconstruct.job import reconstruct
+
+    leds, lights = VirtualLeds(), (0, 4, 8, 12)
+    grey = VirtualCamera(target_maps("grey", 64), RIG, leds)
+    acquire(tmp_path / "grey", RIG, grey, leds, AcquireConfig(target="grey", lights=lights, exposure_s=0.02))
+    cal = calibrate(tmp_path / "cal.json", grey=tmp_path / "grey")
+    assert (cal.exposure_s, cal.led_level) == (0.02, 1.0)
+    doc = json.loads((tmp_path / "cal.json").read_text())
+    assert (doc["exposure_s"], doc["led_level"]) == (0.02, 1.0)
+    old = {k: v for k, v in doc.items() if k not in ("exposure_s", "led_level")}
+    (tmp_path / "old.json").write_text(json.dumps(old))
+
+    sample = small_sample()
+    for name, seconds, level in (("ref", 0.01, 1.0), ("short", 0.005, 1.0), ("dim", 0.02, 0.5)):
+        camera = VirtualCamera(sample, RIG, leds)
+        acquire(tmp_path / name, RIG, camera, leds, AcquireConfig(lights=lights, exposure_s=seconds, level=level))
+
+    def corrected(name: str, calibration: str):
+        capture = apply_calibration(with_calibration_file(load_capture(tmp_path / name), tmp_path / calibration))
+        return capture.linear().mean((0, 2, 3)), capture
+
+    ref, _ = corrected("ref", "cal.json")
+    assert corrected("ref", "cal.json")[1].meta["exposure_ratio"] == pytest.approx(0.5)
+    for name, ratio in (("short", 0.25), ("dim", 0.5)):
+        mean, capture = corrected(name, "cal.json")
+        assert capture.meta["exposure_ratio"] == pytest.approx(ratio)
+        assert torch.allclose(mean / ref, torch.ones(3), atol=0.01), (name, mean / ref)
+        assert not [w for w in capture.meta["warnings"] if "exposure" in w]
+    mean, capture = corrected("short", "old.json")
+    assert torch.allclose(mean / corrected("ref", "old.json")[0], torch.full((3,), 0.5), atol=0.01)
+    assert any("old.json does not record its grey card's exposure" in w for w in capture.meta["warnings"])
+
+    # a self-calibration of the 5 ms capture holds at 5 ms: scales a quarter of the card's,
+    # lights 8's and 12's (not photographed here) too
+    capture = apply_calibration(
+        with_calibration_file(load_capture(tmp_path / "short", lights=(0, 4)), tmp_path / "cal.json")
+    )
+    made = with_light_gains(capture, torch.ones(2, 3))
+    assert made["exposure_s"] == 0.005
+    for k in ("0", "4", "8", "12"):
+        assert made["light_scales"][k] == pytest.approx([0.25 * c for c in doc["light_scales"][k]], rel=1e-5)
+
+    record = reconstruct(
+        tmp_path / "short", tmp_path / "maps", ReconstructConfig(calibration=str(tmp_path / "cal.json"))
+    )
+    assert record["calibration_exposure_ratio"] == pytest.approx(0.25)
+    diffuse = read_mapset(tmp_path / "maps").diffuse.mean((1, 2))
+    assert torch.allclose(diffuse, sample.diffuse.mean((1, 2)), rtol=0.05), (diffuse, sample.diffuse.mean((1, 2)))
+
+
 def test_cli_capture_summary(tmp_path, capsys):
     from matscan.cli import main
 

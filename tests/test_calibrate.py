@@ -113,6 +113,34 @@ def test_light_scales_are_recovered_and_applied(tmp_path):
     assert corrected.images.dtype == load_capture(tmp_path / "grey").images.dtype  # codes stay codes
 
 
+@pytest.mark.parametrize(
+    ("calibration", "acquisition", "ratio", "warned"),
+    [
+        ({"exposure_s": 0.02, "led_level": 0.5}, {"exposure_s": 0.005, "led_level": 1.0}, 0.5, None),
+        ({"exposure_s": 0.02}, {"exposure_s": 0.04}, 2.0, None),
+        ({"exposure_s": 0.02}, {"exposure_s": None, "led_level": 1.0}, 1.0, "measured at 0.02 s (LED level 1)"),
+        ({}, {"exposure_s": 0.005}, 1.0, "does not record its grey card's exposure"),
+        ({}, None, 1.0, None),
+    ],
+)
+def test_scales_follow_the_exposure_and_level_the_capture_records(tmp_path, calibration, acquisition, ratio, warned):
+    """Each photo is divided by its light's scale times the ratio of the capture's
+    exposure × LED level to the calibration's (worked out by hand); where one side does
+    not record an exposure, the scales are applied as they are and a warning says so."""
+    capture = _grey_capture(tmp_path, [1.0, 1.0], [0, 5])
+    doc = json.loads((tmp_path / "grey" / "capture.json").read_text())
+    doc["calibration"] = {"format": "matscan-calibration/1", "light_scales": {"0": 2.0, "5": 4.0}, **calibration}
+    if acquisition is not None:
+        doc["acquisition"] = acquisition
+    (tmp_path / "grey" / "capture.json").write_text(json.dumps(doc))
+    corrected = apply_calibration(load_capture(tmp_path / "grey"))
+    assert corrected.correction.gain[:, 0].tolist() == pytest.approx([2.0 * ratio, 4.0 * ratio])
+    torch.testing.assert_close(corrected.linear()[1], capture.linear()[1] / (4.0 * ratio))
+    found = [w for w in corrected.meta["warnings"] if "exposure" in w]
+    assert found == ([] if warned is None else [next(w for w in found if warned in w)])
+    assert corrected.meta.get("exposure_ratio", 1.0) == ratio
+
+
 def test_calibrate_function_writes_and_returns_the_calibration(tmp_path):
     # the library function behind `matscan calibrate`: a chart and a grey card in one call
     from matscan.calibrate import Calibration, calibrate
@@ -473,9 +501,33 @@ def test_a_weighted_merge_follows_the_files_that_agree_light_by_light(monkeypatc
     assert torch.allclose(merged(exact), torch.stack(exact).mean(0), atol=1e-3)
 
 
+def test_merged_scales_are_brought_to_the_first_files_exposure():
+    """Scales measured at other exposures and LED levels merge as if taken at the first
+    file's: a file at half the exposure (its photos half as bright, so its scales half)
+    and one at a quarter of the level agree with the first once scaled (hand-made
+    numbers); the merge records the first's exposure."""
+    from matscan.calibrate import merge_calibrations
+
+    s = "light_scales"
+    docs = [
+        {"format": "matscan-calibration/1", s: {"0": 2.0}, "exposure_s": 0.01, "led_level": 1.0},
+        {"format": "matscan-calibration/1", s: {"0": 1.0}, "exposure_s": 0.005, "led_level": 1.0},
+        {"format": "matscan-calibration/1", s: {"0": [0.5, 0.5, 0.25]}, "exposure_s": 0.01, "led_level": 0.25},
+    ]
+    m = merge_calibrations(docs, ["a.json", "b.json", "c.json"])
+    assert m.document["exposure_s"] == 0.01 and m.document["led_level"] == 1.0
+    # light 0: 2, 2 and (2, 2, 1) at the first's exposure; the blue channel's geometric mean 4^(1/3)
+    assert m.document[s]["0"] == pytest.approx([2.0, 2.0, 4 ** (1 / 3)], abs=1e-6)
+    assert m.scale_spread > 0  # the blue channel's 1 against 2 and 2
+
+
 @pytest.mark.parametrize(
     ("change", "said"),
     [
+        ({"exposure_s": 0.01}, "a.json: records no exposure where b.json does"),
+        ({"exposure_s": 0.0}, "b.json: exposure_s: must be positive"),
+        ({"exposure_s": 0.01, "led_level": 1.5}, "b.json: led_level: 1.5 is out of range"),
+        ({"led_level": 0.5}, "b.json: led_level: given without exposure_s"),
         ({"colour_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}, "b.json: colour_matrix differs from a.json's"),
         ({"format": "matscan-calibration/2"}, "b.json: format: must be 'matscan-calibration/1'"),
         ({"light_scales": {"0": -1.0}}, "b.json: light_scales['0']"),

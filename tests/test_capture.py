@@ -124,6 +124,16 @@ def _edit(folder, mutate):
         (lambda d: d.update(rig="dome99"), r"capture\.json: rig: 'dome99' is not a built-in rig"),
         (lambda d: d.update(extra=1), r"unknown key 'extra'"),
         (lambda d: d.update(images=[]), r"images: expected a non-empty list"),
+        (lambda d: d.update(acquisition=[]), r"capture\.json: acquisition: expected an object"),
+        (
+            lambda d: d.update(acquisition={"exposure_s": "fast"}),
+            r"capture\.json: acquisition: exposure_s: expected a finite number, got 'fast'",
+        ),
+        (lambda d: d.update(acquisition={"exposure_s": 0}), r"acquisition: exposure_s: must be positive, got 0"),
+        (
+            lambda d: d.update(acquisition={"exposure_s": 0.01, "led_level": 2}),
+            r"acquisition: led_level: 2 is out of range",
+        ),
     ],
 )
 def test_capture_json_errors(tmp_path, mutate, words):

@@ -271,6 +271,8 @@ CALIBRATION = {
     "light_scales": {"0": 1.0, "5": 0.9, "17": 1.1},
     "flat_fields": {"0": "flat_00.exr"},
     "grey_albedo": 0.18,
+    "exposure_s": 0.01,
+    "led_level": 1.0,
 }
 
 
@@ -282,6 +284,7 @@ def make_capture(root: Path, calibration_file: bool = False) -> Path:
     write_image(folder / "flat_00.exr", np.ones((8, 8, 1), np.float32), bits=32)
     doc = json.loads((folder / "capture.json").read_text())
     doc["simulation"] = {"noise": 0.01}
+    doc["acquisition"] = {"camera": "virtual", "exposure_s": 0.005, "led_level": 0.5, "frames": 3}
     if calibration_file:
         (folder / "calibration.json").write_text(json.dumps(CALIBRATION))
         doc["calibration"] = "calibration.json"

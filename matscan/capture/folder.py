@@ -33,7 +33,7 @@ from torch import Tensor
 from matscan.color import linear_to_srgb, srgb_to_linear
 from matscan.errors import MatscanError, input_error
 from matscan.imagefile import read_image, write_image
-from matscan.jsonfile import check_file_name, check_object, check_vector, dumps, read_json, short_repr
+from matscan.jsonfile import check_file_name, check_number, check_object, check_vector, dumps, read_json, short_repr
 from matscan.outputs import claim_output
 from matscan.rig import (
     BUILTIN_RIGS,
@@ -130,7 +130,8 @@ class Capture:
         backlight: backlight photos by key (linear, (3, H, W)), if any.
         calibration: the calibration JSON object, if any.
         folder: where it was read from.
-        meta: other recorded fields (``simulation``), and ``warnings`` (a list of
+        meta: other recorded fields (``simulation``; ``exposure_s`` and ``led_level`` from
+            ``acquisition``, where ``matscan capture`` set them), and ``warnings`` (a list of
             one-line messages) once calibration has been applied.
         calibration_file: the calibration file, when the capture names one (its
             flat fields lie beside it).
@@ -421,6 +422,23 @@ def _read_calibration(raw: Any, folder: Path, path: Path) -> tuple[dict[str, Any
     raise input_error(path, f"calibration: expected a file name or an object, got {short_repr(raw)}")
 
 
+def _read_exposure(acquisition: Any, path: Path) -> dict[str, float]:
+    """What ``acquisition`` says of the photos' brightness: ``exposure_s`` (where
+    ``matscan capture`` set the exposure; null where the camera did) and ``led_level``
+    (the LEDs' level, 0-1; 1 where a capture made before it was recorded), for
+    :func:`matscan.calibrate.apply_calibration`, which scales a calibration made at
+    another exposure or level by the ratio."""
+    where = f"{path}: acquisition"
+    check_object(acquisition, where)
+    found: dict[str, float] = {}
+    if acquisition.get("exposure_s") is not None:
+        found["exposure_s"] = check_number(acquisition["exposure_s"], f"{where}: exposure_s", positive=True)
+        found["led_level"] = 1.0
+    if acquisition.get("led_level") is not None:
+        found["led_level"] = check_number(acquisition["led_level"], f"{where}: led_level", 0.0, 1.0, positive=True)
+    return found
+
+
 def with_calibration_file(capture: Capture, file: str | Path) -> Capture:
     """The capture with the calibration in ``file`` in place of its own (if any), not yet
     applied: another capture's ``self_calibration.json``, say, for a capture of the same
@@ -461,6 +479,8 @@ def load_capture(folder: str | Path, lights: Sequence[int] | None = None) -> Cap
     meta: dict[str, Any] = {}
     if "simulation" in data:
         meta["simulation"] = check_object(data["simulation"], f"{path}: simulation")
+    if "acquisition" in data:
+        meta.update(_read_exposure(data["acquisition"], path))
 
     images, saturated, lut = _read_images(folder, chosen, encoding)
     backlight: dict[str, Tensor] = {}

@@ -783,6 +783,8 @@ def reconstruct(
             "conventions": CONVENTIONS,
             "timings_s": {k: round(v, 3) for k, v in res.timings.items()},
         }
+        if "exposure_ratio" in capture.meta:  # the calibration's scales, brought to this capture's exposure
+            record["calibration_exposure_ratio"] = capture.meta["exposure_ratio"]
         if validation is not None:
             record["validation"] = validation
         if res.self_calibration is not None:
