@@ -18,7 +18,21 @@ and the damping adapted per pixel. A coarse level (the photos box-filtered) find
 the basin, after a grid search over roughness; the full level polishes.
 
 Residuals are relative, √W (m − y) with W = valid / (y + τ)², so dark and bright
-pixels count alike (as the log-space loss of the first-order refinement does).
+pixels count alike (as the log-space loss of the first-order refinement does). Weights
+taken from the photos favour the values the noise pushed low (and those the camera
+clipped at 0): with noisy photos the fit follows them down (a glossy sample at the
+exposure that keeps its highlights unsaturated, its diffuse regions a few code values
+above black, came out with half its albedo; runs/lm-noise/README.md). So where a capture
+has ``reweight_from`` photos or more and the first sweep's residuals (noise, and misfit:
+lights placed or scaled wrong) show the photos noisier than τ assumes (``noise_floor`` ×
+σ̂ > τ, σ̂ the robust deviation of the darker half of the values' residuals, measured
+over the whole image), ``reweight`` more sweeps at full resolution take the weights from
+the fitted model m instead, W = valid / (m + τ')², τ' = ``noise_floor`` × σ̂: a dark
+value counts as the noise allows rather than as a relative error of 1/τ. Elsewhere the
+first sweep's maps stand: with photos no noisier than τ assumes, the model's weights
+only move the misfit about (better on some materials, worse on others: the engine
+study), and with fewer photos the fit follows each value's noise, so its model weighs as
+the photos do.
 
 The prior: ridge terms hold ρ and F0 near their start (the networks' maps) and
 quadratic terms hold r and the slopes near theirs, with fixed strengths. Where the
@@ -33,7 +47,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -42,6 +56,10 @@ from torch import Tensor
 from matscan.brdf import ggx_alpha, ggx_distribution, smith_g
 from matscan.errors import MatscanError
 from matscan.rig import LightSet
+
+#: From this many photos a capture's weights may be taken from the fitted model
+#: (``SolverConfig.reweight_from``): chosen on a selection set (runs/lm-noise/README.md).
+REWEIGHT_FROM = 6
 
 
 @dataclass(frozen=True)
@@ -61,13 +79,17 @@ class SolverConfig:
     prior_roughness: float = 0.5  # per unit of roughness²
     prior_normal: float = 0.5  # per unit of slope²
     tile_pixels: int = 1 << 16  # pixels solved at once (bounds memory)
+    reweight: int = 2  # passes with the weights from the fitted model (module doc)
+    reweight_from: int = REWEIGHT_FROM  # photos a capture needs for them
+    noise_floor: float = 3.0  # τ' = noise_floor × the residuals' deviation, where it exceeds τ (else no sweeps)
 
     def __post_init__(self) -> None:
-        for name, low in (("iterations", 0), ("fine_iterations", 1), ("coarse", 0), ("tile_pixels", 1)):
+        integers = (("iterations", 0), ("fine_iterations", 1), ("coarse", 0), ("tile_pixels", 1), ("reweight", 0))
+        for name, low in (*integers, ("reweight_from", 1)):
             value = getattr(self, name)  # fine_iterations ≥ 1: the confidence needs one Jacobian
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise MatscanError(f"solver.{name}: {value!r} must be an integer of at least {low}")
-        for name in ("tau", "prior_diffuse", "prior_specular", "prior_roughness", "prior_normal"):
+        for name in ("tau", "prior_diffuse", "prior_specular", "prior_roughness", "prior_normal", "noise_floor"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
                 raise MatscanError(f"solver.{name}: {value!r} must be a finite number of at least 0")
@@ -318,6 +340,32 @@ def _problem(
     )
 
 
+def reweight_passes(cfg: SolverConfig, photos: int) -> int:
+    """The passes with the weights from the fitted model for a capture of ``photos``
+    photos: ``cfg.reweight`` from ``cfg.reweight_from`` photos on, else none."""
+    return cfg.reweight if photos >= cfg.reweight_from else 0
+
+
+#: Values (pixel × photo × channel) kept to measure the noise between sweeps.
+NOISE_SAMPLE = 1 << 22
+
+
+def noise_tau(model: Tensor, residual: Tensor, cfg: SolverConfig) -> float:
+    """τ' = max(τ, ``noise_floor`` × 1.4826 × the median |residual| of the values whose
+    model is at most the median model value), from the valid values' model and
+    |photo − model| (module doc)."""
+    if cfg.noise_floor <= 0 or model.numel() == 0:
+        return cfg.tau
+    dark = model <= model.median()
+    return max(cfg.tau, cfg.noise_floor * 1.4826 * float(residual[dark].median()))
+
+
+def _model_of(rho: Tensor, f0: Tensor, theta: Tensor, geo: Geometry) -> Tensor:
+    """The model ρ·A + F0·S1 + S0 (K, 3, P), at least 0."""
+    a, s1, s0 = bases(theta, geo)
+    return (rho[None] * a + f0[None] * s1 + s0).clamp_min(0)
+
+
 #: Reads rows r0:r1 of the photos: (linear photos (K, 3, r, W) divided by any intensity
 #: scale, valid (K, 1, r, W) float, 0 where saturated).
 PhotoRows = Callable[[int, int], tuple[Tensor, Tensor]]
@@ -423,38 +471,65 @@ def solve_rows(
     }
     conf = {name: torch.empty(1, h, w) for name in ("diffuse", "specular", "roughness", "normal")}
     rows = max(1, cfg.tile_pixels // w)
-    for done, r0 in enumerate(range(0, h, rows)):
-        r1 = min(h, r0 + rows)
-        px = lambda t, r0=r0, r1=r1: t[..., r0:r1, :].reshape(*t.shape[:-2], -1)  # noqa: E731
-        y, v = read(r0, r1)
-        args = (
-            y.reshape(k, 3, -1),
-            v.reshape(k, 1, -1),
-            geometry(lights, points[r0:r1].reshape(-1, 3)),
-            px(diffuse),
-            px(specular),
-        )
-        # θ's start per band (a full-size copy would be 12 bytes a pixel more)
-        theta_start = _theta_of(roughness[:, r0:r1], normal[:, r0:r1]).reshape(3, -1)
-        theta = theta_start if correction is None else (theta_start + px(correction)).clamp(THETA_LOW, THETA_HIGH)
-        prob = _problem(*args, theta_start, cfg, strength)
-        if not coarse_done:  # small images: no coarse level
-            theta = grid_start(prob, theta)
-        theta, jtj = levenberg_marquardt(prob, theta, cfg.fine_iterations)
-        a, s1, s0 = bases(theta, prob.geo)
-        rho, f0, haa, hss = linear_solve(prob, a, s1, s0)
-        shape = (r1 - r0, w)
-        out["diffuse"][:, r0:r1] = rho.reshape(3, *shape)
-        out["specular"][:, r0:r1] = f0.reshape(3, *shape)
-        out["theta"][:, r0:r1] = theta.reshape(3, *shape)
-        conf["diffuse"][0, r0:r1] = (haa / (haa + prob.lam_d).clamp_min(1e-12)).mean(0).reshape(shape)
-        conf["specular"][0, r0:r1] = (hss / (hss + prob.lam_s).clamp_min(1e-12)).mean(0).reshape(shape)
-        lam = prob.lam_t
-        c = [jtj[i] / (jtj[i] + lam[i]).clamp_min(1e-12) for i in range(3)]
-        conf["roughness"][0, r0:r1] = c[0].reshape(shape)
-        conf["normal"][0, r0:r1] = ((c[1] + c[2]) / 2).reshape(shape)
-        if progress is not None:
-            progress(done + 1)
+    passes = reweight_passes(cfg, k)
+    tiles = math.ceil(h / rows)
+    # every stride-th pixel's values (by its place in the image, so the same whatever the
+    # tiles) measure the noise between sweeps: NOISE_SAMPLE values or so
+    stride = max(1, h * w * k * 3 // NOISE_SAMPLE)
+    tau = cfg.tau
+    for sweep in range(passes + 1):
+        last = sweep == passes
+        samples: list[tuple[Tensor, Tensor]] = []
+        for done, r0 in enumerate(range(0, h, rows)):
+            r1 = min(h, r0 + rows)
+            px = lambda t, r0=r0, r1=r1: t[..., r0:r1, :].reshape(*t.shape[:-2], -1)  # noqa: E731
+            y, v = read(r0, r1)
+            args = (
+                y.reshape(k, 3, -1),
+                v.reshape(k, 1, -1),
+                geometry(lights, points[r0:r1].reshape(-1, 3)),
+                px(diffuse),
+                px(specular),
+            )
+            # θ's start per band (a full-size copy would be 12 bytes a pixel more)
+            theta_start = _theta_of(roughness[:, r0:r1], normal[:, r0:r1]).reshape(3, -1)
+            prob = _problem(*args, theta_start, cfg, strength)
+            if sweep == 0:
+                theta = theta_start
+                if correction is not None:
+                    theta = (theta_start + px(correction)).clamp(THETA_LOW, THETA_HIGH)
+                if not coarse_done:  # small images: no coarse level
+                    theta = grid_start(prob, theta)
+            else:  # the weights from the model the last sweep fitted (module doc)
+                theta = px(out["theta"])
+                m = _model_of(px(out["diffuse"]), px(out["specular"]), theta, prob.geo)
+                prob = replace(prob, wt=args[1].expand_as(m) / (m + tau) ** 2, sw=None)
+            theta, jtj = levenberg_marquardt(prob, theta, cfg.fine_iterations)
+            a, s1, s0 = bases(theta, prob.geo)
+            rho, f0, haa, hss = linear_solve(prob, a, s1, s0)
+            shape = (r1 - r0, w)
+            out["diffuse"][:, r0:r1] = rho.reshape(3, *shape)
+            out["specular"][:, r0:r1] = f0.reshape(3, *shape)
+            out["theta"][:, r0:r1] = theta.reshape(3, *shape)
+            conf["diffuse"][0, r0:r1] = (haa / (haa + prob.lam_d).clamp_min(1e-12)).mean(0).reshape(shape)
+            conf["specular"][0, r0:r1] = (hss / (hss + prob.lam_s).clamp_min(1e-12)).mean(0).reshape(shape)
+            lam = prob.lam_t
+            c = [jtj[i] / (jtj[i] + lam[i]).clamp_min(1e-12) for i in range(3)]
+            conf["roughness"][0, r0:r1] = c[0].reshape(shape)
+            conf["normal"][0, r0:r1] = ((c[1] + c[2]) / 2).reshape(shape)
+            if not last:
+                m = (rho[None] * a + f0[None] * s1 + s0).clamp_min(0)
+                pick = torch.arange(r0 * w, r1 * w) % stride == 0
+                kept = (args[1] > 0).expand_as(m)[..., pick]
+                samples.append((m[..., pick][kept], (prob.y - m)[..., pick][kept].abs()))
+            if progress is not None:
+                progress(sweep * tiles + done + 1)
+        if not last:
+            tau = noise_tau(torch.cat([m for m, _ in samples]), torch.cat([r for _, r in samples]), cfg)
+            if tau <= cfg.tau:  # the photos are no noisier than τ assumes: the first sweep's maps stand
+                if progress is not None:
+                    progress((passes + 1) * tiles)
+                break
     theta = out.pop("theta")
     out["roughness"] = theta[0:1].clamp(0.02, 1)
     out["normal"] = normal_of(theta.reshape(3, -1)).reshape(3, h, w)

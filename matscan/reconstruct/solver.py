@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from matscan.capture import Capture
 from matscan.mapset import MapSet
-from matscan.reconstruct.lm import SolverConfig, solve, solve_rows
+from matscan.reconstruct.lm import SolverConfig, reweight_passes, solve, solve_rows
 from matscan.render import flat_albedo, flat_irradiance, render, surface_points
 from matscan.rig import LightSet
 
@@ -316,7 +316,7 @@ def solve_maps(
         return photos / scale if scale != 1.0 else photos, (~capture.saturation(used, (r0, r1))).float()
 
     rows = max(1, cfg.tile_pixels // w)
-    tiles = math.ceil(h / rows)
+    tiles = math.ceil(h / rows) * (1 + reweight_passes(cfg, len(used)))  # a sweep over the tiles a pass
     with tqdm(total=tiles, desc="solve", unit="tile", disable=not progress or tiles == 1, leave=False) as bar:
         out, conf = solve_rows(
             read,
