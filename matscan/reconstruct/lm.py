@@ -517,11 +517,11 @@ def solve_rows(
             c = [jtj[i] / (jtj[i] + lam[i]).clamp_min(1e-12) for i in range(3)]
             conf["roughness"][0, r0:r1] = c[0].reshape(shape)
             conf["normal"][0, r0:r1] = ((c[1] + c[2]) / 2).reshape(shape)
-            if not last:
-                m = (rho[None] * a + f0[None] * s1 + s0).clamp_min(0)
-                pick = torch.arange(r0 * w, r1 * w) % stride == 0
-                kept = (args[1] > 0).expand_as(m)[..., pick]
-                samples.append((m[..., pick][kept], (prob.y - m)[..., pick][kept].abs()))
+            if not last:  # the picked pixels' model and residuals, for the noise's measure
+                pick = (torch.arange(r0 * w, r1 * w) % stride == 0).nonzero()[:, 0]
+                m = (rho[None, :, pick] * a[..., pick] + f0[None, :, pick] * s1[..., pick] + s0[..., pick]).clamp_min(0)
+                kept = (args[1][..., pick] > 0).expand_as(m)
+                samples.append((m[kept], (prob.y[..., pick] - m)[kept].abs()))
             if progress is not None:
                 progress(sweep * tiles + done + 1)
         if not last:
