@@ -316,8 +316,9 @@ def solve_maps(
         return photos / scale if scale != 1.0 else photos, (~capture.saturation(used, (r0, r1))).float()
 
     rows = max(1, cfg.tile_pixels // w)
-    tiles = math.ceil(h / rows) * (1 + reweight_passes(cfg, len(used)))  # a sweep over the tiles a pass
-    with tqdm(total=tiles, desc="solve", unit="tile", disable=not progress or tiles == 1, leave=False) as bar:
+    tiles = math.ceil(h / rows)
+    sweeps = 1 + reweight_passes(cfg, len(used))  # at most: the noise decides (lm's module doc)
+    with tqdm(total=tiles * sweeps, desc="solve", unit="tile", disable=not progress or tiles == 1, leave=False) as bar:
         out, conf = solve_rows(
             read,
             len(used),
