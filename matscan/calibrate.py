@@ -49,7 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from matscan.capture import Capture
-from matscan.capture.folder import Correction
+from matscan.capture.folder import EXPOSURE_LIMITS, Correction
 from matscan.color import srgb_to_linear
 from matscan.errors import MatscanError, input_error
 from matscan.jsonfile import check_file_name, check_number, check_object, check_vector, short_repr
@@ -1057,9 +1057,6 @@ _CALIBRATION_KEYS = {
     "exposure_s": False,
     "led_level": False,
 }
-#: Exposures (s) and LED levels as a calibration records them: a camera's shortest
-#: exposures are 1/32000 s and its longest a few minutes.
-EXPOSURE_LIMITS = (1e-6, 3600.0)
 
 
 def _exposure(doc: Mapping[str, Any], prefix: str) -> tuple[float, float] | None:

@@ -131,6 +131,10 @@ def _edit(folder, mutate):
         ),
         (lambda d: d.update(acquisition={"exposure_s": 0}), r"acquisition: exposure_s: must be positive, got 0"),
         (
+            lambda d: d.update(acquisition={"exposure_s": 7200}),
+            r"acquisition: exposure_s: 7200 is out of range",
+        ),
+        (
             lambda d: d.update(acquisition={"exposure_s": 0.01, "led_level": 2}),
             r"acquisition: led_level: 2 is out of range",
         ),
@@ -142,6 +146,21 @@ def test_capture_json_errors(tmp_path, mutate, words):
     with pytest.raises(MatscanError, match=words) as info:
         load_capture(folder)
     assert "\n" not in str(info.value)
+
+
+def test_the_shortest_exposure_capture_can_meter_is_read(tmp_path):
+    """``matscan capture`` meters from 0.01 s, halving up to 15 times; every exposure it
+    can record loads (and one of an hour, the longest allowed)."""
+    from matscan.capture.acquire import AcquireConfig
+
+    folder = _capture(tmp_path)
+    for seconds in (0.01 / 2**15, 3600):
+        _edit(folder, lambda d, s=seconds: d.update(acquisition={"exposure_s": s}))
+        assert load_capture(folder).meta["exposure_s"] == seconds
+        AcquireConfig(exposure_s=seconds)
+    for seconds in (0.0, 7200.0):
+        with pytest.raises(MatscanError, match=r"--exposure: .* must be a number of seconds from 1e-09 to 3600"):
+            AcquireConfig(exposure_s=seconds)
 
 
 def test_unreadable_and_mismatched_images(tmp_path):

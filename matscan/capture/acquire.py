@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from matscan.atomic import output_lock, write_text
+from matscan.capture.folder import EXPOSURE_LIMITS
 from matscan.errors import MatscanError, input_error
 from matscan.hardware.leds import DARK, Illumination
 from matscan.jsonfile import dumps
@@ -72,8 +73,9 @@ class AcquireConfig:
             raise MatscanError(f"--target: {self.target!r} is not one of {', '.join(TARGETS)}")
         if not 0 < self.level <= 1:
             raise MatscanError(f"--level: {self.level!r} must be above 0 and at most 1")
-        if self.exposure_s is not None and not self.exposure_s > 0:
-            raise MatscanError(f"--exposure: {self.exposure_s!r} must be a positive number of seconds")
+        low, high = EXPOSURE_LIMITS
+        if self.exposure_s is not None and not low <= self.exposure_s <= high:
+            raise MatscanError(f"--exposure: {self.exposure_s!r} must be a number of seconds from {low:g} to {high:g}")
 
 
 @dataclass

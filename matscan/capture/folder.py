@@ -422,6 +422,13 @@ def _read_calibration(raw: Any, folder: Path, path: Path) -> tuple[dict[str, Any
     raise input_error(path, f"calibration: expected a file name or an object, got {short_repr(raw)}")
 
 
+#: Exposures (s) as a capture or a calibration records them: an hour at most (a camera's
+#: longest are a few minutes; a larger number is likely milliseconds), and down to the
+#: nanosecond, below any camera's shortest (1/32000 s) and the 0.01 s / 2^15 that
+#: ``matscan capture``'s metering may reach with the virtual camera.
+EXPOSURE_LIMITS = (1e-9, 3600.0)
+
+
 def _read_exposure(acquisition: Any, path: Path) -> dict[str, float]:
     """What ``acquisition`` says of the photos' brightness: ``exposure_s`` (where
     ``matscan capture`` set the exposure; null where the camera did) and ``led_level``
@@ -432,7 +439,9 @@ def _read_exposure(acquisition: Any, path: Path) -> dict[str, float]:
     check_object(acquisition, where)
     found: dict[str, float] = {}
     if acquisition.get("exposure_s") is not None:
-        found["exposure_s"] = check_number(acquisition["exposure_s"], f"{where}: exposure_s", positive=True)
+        found["exposure_s"] = check_number(
+            acquisition["exposure_s"], f"{where}: exposure_s", *EXPOSURE_LIMITS, positive=True
+        )
         found["led_level"] = 1.0
     if acquisition.get("led_level") is not None:
         found["led_level"] = check_number(acquisition["led_level"], f"{where}: led_level", 0.0, 1.0, positive=True)
