@@ -240,12 +240,10 @@ def main() -> int:
         )
     params = sum(p.numel() for p in nets.parameters())
     options = (f" --fill {args.fill}" if args.fill else "") + (f" --take {args.take}" if args.take else "")
-    train_cmd = (
-        f"matscan train --out {run} --minutes M"
-        + (f" --maps {','.join(cfg['maps'])}" if len(cfg["maps"]) < 4 else "")
-        + (f" --init {meta['init']}" if "init" in meta else "")
-        + (f" --lr {cfg['lr']:g}" if cfg["lr"] != 1e-4 else "")
-    )
+    # the run's own settings file is the command's: a list of flags would leave out
+    # some (the prior, the photo library, the rendering loss's form)
+    train_cmd = f"matscan train --out {run} --config {run}/config.json --minutes M"
+    joint = cfg.get("render_with", "own") == "joint"
     lines = [
         "# Model card: `default` (dome24, `cpu` preset)",
         "",
@@ -258,7 +256,7 @@ def main() -> int:
         "## How it was trained",
         "",
         f"- Command: `{train_cmd}` (resumed across sessions; the run's `config.json` holds every setting), "
-        f"then `tools/model_card.py {run}" + options + "`.",
+        f"then `tools/model_card.py {run} {count}" + options + "`.",
         f"- Networks: the paper's U-Net with global skip connections, preset `{cfg['preset']}` "
         f"(variant `{cfg['variant']}`): four independent networks for diffuse, specular, roughness (via "
         "glossiness) and normals; inputs are 24 light slots with presence planes and field coordinates, so one "
@@ -319,10 +317,17 @@ def main() -> int:
         "Steps of every run behind a network add up whatever their batch (4 in CPU runs, 32 in GPU runs; each "
         "run's `config.json`).",
         "",
-        "The four networks are independent and each has its own loss (one predicted map rendered with the "
-        "other three true maps), so one network trained alone gets the same updates as in a run of all four "
-        "(`tests/test_train.py`); the hours are the wall time of the runs behind each network, whether "
-        "they trained all four networks at once or it alone.",
+        'The four networks are independent. With the paper\'s rendering loss (`render_with` "own") each has '
+        "its own (one predicted map rendered with the other three true maps), so one network trained alone "
+        "gets the same updates as in a run of all four (`tests/test_train.py`); the hours are the wall time "
+        "of the runs behind each network, whether they trained all four networks at once or it alone."
+        + (
+            f" This run rendered the predicted {' and '.join(cfg['maps'])} maps together instead "
+            '(`render_with` "joint", the other maps true), so its networks learned to relight well '
+            "together and its weights are not those of each trained alone."
+            if joint
+            else ""
+        ),
     ]
     lines += [
         "",
