@@ -36,6 +36,7 @@ _API = {
     "ReconstructConfig": "matscan.reconstruct.job",
     "builtin_rig": "matscan.rig",
     "calibrate": "matscan.calibrate",
+    "export_maps": "matscan.export",
     "import_rti": "matscan.capture.rti",
     "load_capture": "matscan.capture.folder",
     "read_mapset": "matscan.mapset",
@@ -57,6 +58,7 @@ __all__ = [
     "ReconstructConfig",
     "builtin_rig",
     "calibrate",
+    "export_maps",
     "import_rti",
     "load_capture",
     "read_mapset",
@@ -103,6 +105,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from matscan.capture.folder import Capture, load_capture
     from matscan.capture.virtual import CameraModel, simulate
     from matscan.errors import MatscanError
+    from matscan.export import export_maps
     from matscan.mapset import MapSet, read_mapset, write_maps, write_mapset
     from matscan.reconstruct.job import ReconstructConfig, reconstruct, reconstruct_capture
     from matscan.render import render_maps

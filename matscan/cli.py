@@ -396,6 +396,43 @@ def _sheet(args: argparse.Namespace, source: Path) -> str:
     return f"sheet: wrote {args.out} ({len(tiles)} tiles)"
 
 
+def cmd_export(args: argparse.Namespace) -> str:
+    from matscan.export import export_maps
+
+    field = _vector(args.field_mm, 2, "--field-mm") if args.field_mm else None
+    if field is not None and min(field) <= 0:
+        raise MatscanError(f"--field-mm: {args.field_mm!r} must be two positive sizes (width, height) in mm")
+    record = export_maps(
+        args.maps,
+        args.out,
+        field_mm=field,
+        rig=args.rig,
+        exr=args.exr,
+        directx_normals=args.directx_normals,
+        normal_convention=args.normal_convention,
+        overwrite=args.overwrite,
+        overwrite_any=args.overwrite_any,
+    )
+    (w, h), (fw, fh) = record["size_px"], record["field_mm"]
+    kinds = [name for name, ext in EXPORT_KINDS if any(f.endswith(ext) for f in record["exports"])]
+    return (
+        f"export: wrote {args.out} ({w}×{h} {', '.join(record['maps'])}; {', '.join(kinds)}; "
+        f"{fw:.4g}×{fh:.4g} mm from {record['field_from']}) in {record['seconds']:.1f} s"
+    )
+
+
+#: The exports the summary names, by the ending of a file that shows them.
+EXPORT_KINDS = (
+    ("glTF", ".gltf"),
+    ("GLB", ".glb"),
+    ("MaterialX", ".mtlx"),
+    ("USD", ".usda"),
+    ("USDZ", ".usdz"),
+    ("EXR", "exr/"),
+    ("DirectX normals", "normal_directx.png"),
+)
+
+
 def cmd_rig_from_lp(args: argparse.Namespace) -> str:
     from matscan.atomic import write_text
     from matscan.capture.rti import RTI_FIELD_WIDTH_MM, read_lp, rig_from_lp
@@ -1400,6 +1437,41 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--columns", type=positive_int, default=None)
     p.add_argument("--overwrite", action="store_true", help="replace an existing PNG")
     p.set_defaults(func=cmd_sheet)
+
+    p = sub.add_parser(
+        "export", help="a map set (or a public library's maps) as glTF, GLB, MaterialX, USD and PNG/EXR maps"
+    )
+    p.add_argument(
+        "maps",
+        metavar="MAPS",
+        help="a map set or reconstruction folder, a folder of maps from a PBR library, a Deschaintre panel "
+        "image, or @sample",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="folder to write (the maps and the exports)")
+    p.add_argument(
+        "--field-mm",
+        dest="field_mm",
+        default=None,
+        metavar="W,H",
+        help="the sample's size in mm (default: what the maps' matscan.json records, else the rig's field)",
+    )
+    p.add_argument("--rig", default="dome24", help="rig whose field the maps cover when nothing says (dome24)")
+    p.add_argument("--exr", action="store_true", help="also write every map as float EXR (exr/)")
+    p.add_argument(
+        "--directx-normals",
+        dest="directx_normals",
+        action="store_true",
+        help="also write normal_directx.png (green flipped)",
+    )
+    p.add_argument(
+        "--normal-convention",
+        dest="normal_convention",
+        choices=("auto", "opengl", "directx"),
+        default="auto",
+        help="how a library folder's normal map is encoded (auto: OpenGL unless its file name says DX)",
+    )
+    _overwrite_folder(p)
+    p.set_defaults(func=cmd_export)
     return parser
 
 

@@ -17,11 +17,17 @@
 * **EXR maps** (``exr/``): every map as float32 EXR, linear.
 * **DirectX normals** (``normal_directx.png``): green flipped, for engines that
   want that convention.
+
+``matscan reconstruct`` writes these beside its maps; :func:`export_maps` (``matscan
+export``) writes them for a map set already made: a reconstruction, a matscan map set, a
+public library's folder of maps or a Deschaintre panel image.
 """
 
 from __future__ import annotations
 
 import struct
+import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -399,3 +405,98 @@ def export_all(
         write_image(folder / "normal_directx.png", _hwc((dx + 1) / 2), bits=16, colourspace="linear")
         written.append("normal_directx.png")
     return written
+
+
+#: Bytes an export writes per map pixel, generously: the maps, their glTF textures three
+#: times (beside the .gltf, inside the .glb and the .usdz); float EXRs when asked.
+EXPORT_BYTES_PER_PIXEL = 96
+EXR_BYTES_PER_PIXEL = 60
+#: A sample field's sides (mm) an export accepts: a micron to a kilometre.
+FIELD_LIMITS_MM = (1e-3, 1e6)
+
+
+def recorded_field(folder: Path) -> tuple[float, float] | None:
+    """The sample field (mm) that a ``matscan.json`` in ``folder`` records (written by
+    ``reconstruct`` and by :func:`export_maps`); None where there is none or it records
+    no field. A malformed one is an error naming it."""
+    from matscan.jsonfile import check_vector, read_json
+    from matscan.outputs import RECORD
+
+    path = folder / RECORD
+    if not folder.is_dir() or not path.is_file():
+        return None
+    record = read_json(path)
+    if not isinstance(record, dict) or "field_mm" not in record:
+        return None
+    width, height = check_vector(record["field_mm"], 2, f"{path}: field_mm", FIELD_LIMITS_MM[0], FIELD_LIMITS_MM[1])
+    return width, height
+
+
+def export_maps(
+    maps: str | Path,
+    out: str | Path,
+    field_mm: Sequence[float] | None = None,
+    rig: str | Path = "dome24",
+    exr: bool = False,
+    directx_normals: bool = False,
+    normal_convention: str = "auto",
+    overwrite: bool = False,
+    overwrite_any: bool = False,
+) -> dict[str, Any]:
+    """Write the map set ``maps`` into a new folder ``out`` as a matscan map set with every
+    export ``reconstruct`` writes beside it (glTF, GLB, MaterialX, USD where usd-core is
+    installed; ``exr``: float EXR maps; ``directx_normals``: ``normal_directx.png``).
+
+    ``maps``: any layout :func:`matscan.materials.library.read_any` reads (a matscan map
+    set or reconstruction, a public library's folder of maps, a Deschaintre panel image),
+    or ``"@sample"``; ``normal_convention`` says how a library folder's normal map is
+    encoded (``auto``: OpenGL unless its name says DX). The exported quad's size
+    (mm): ``field_mm``; else the field a ``matscan.json`` in ``maps`` records (a
+    reconstruction's, an earlier export's); else ``rig``'s field, which the maps are
+    taken to cover as ``simulate`` and ``render`` take them to. Inputs are never
+    written; ``out`` is checked before the work and written atomically (``overwrite``,
+    ``overwrite_any``: as for ``reconstruct``). Returns the record written as
+    ``matscan.json``."""
+    from matscan import __version__
+    from matscan.jsonfile import check_vector, dumps
+    from matscan.mapset import CONVENTIONS
+    from matscan.materials.library import read_any
+    from matscan.outputs import OUTPUT_FORMAT, RECORD, claim_output
+    from matscan.rig import resolve_rig
+    from matscan.samples import maps_folder
+
+    t0 = time.perf_counter()
+    source = maps_folder(maps)
+    if field_mm is not None:
+        field = check_vector(list(field_mm), 2, "field_mm", FIELD_LIMITS_MM[0], FIELD_LIMITS_MM[1])
+    inputs: list[str | Path] = [source]
+    if str(rig).endswith(".json"):
+        inputs.append(Path(rig))
+    with claim_output(out, "export", inputs, overwrite=overwrite, overwrite_any=overwrite_any) as claim:
+        maps_read = read_any(source, normal_convention)
+        if field_mm is not None:
+            field_from = "field_mm"
+        elif (recorded := recorded_field(source)) is not None:
+            field, field_from = recorded, f"{RECORD} of the maps"
+        else:
+            the_rig = resolve_rig(rig)
+            field, field_from = the_rig.field_mm, f"rig {the_rig.name}"
+        h, w = maps_read.size
+        claim.check_space(h * w * (EXPORT_BYTES_PER_PIXEL + (EXR_BYTES_PER_PIXEL if exr else 0)))
+        record: dict[str, Any] = {
+            "format": OUTPUT_FORMAT,
+            "command": "export",
+            "matscan_version": __version__,
+            "input": str(source.resolve()),
+            "size_px": [w, h],
+            "field_mm": list(field),
+            "field_from": field_from,
+            "maps": sorted(maps_read.present()),
+            "conventions": CONVENTIONS,
+        }
+        with claim.folder() as tmp:
+            write_maps(tmp, maps_read)
+            record["exports"] = export_all(tmp, maps_read, (field[0], field[1]), exr, directx_normals)
+            record["seconds"] = round(time.perf_counter() - t0, 3)
+            (tmp / RECORD).write_text(dumps(record, RECORD), encoding="utf-8")
+    return record

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import struct
 
 import numpy as np
@@ -266,3 +267,179 @@ def test_usd_stage_binds_a_preview_surface_reading_the_textures(tmp_path):
     with zipfile.ZipFile(tmp_path / "material.usdz") as z:
         names = z.namelist()
     assert names[0] == "material.usda" and {"tex_basecolor.png", "tex_normal.png"} <= set(names)
+
+
+# --- matscan export: a map set already made, exported -------------------------------
+
+
+def _quad_size_m(folder) -> tuple[float, float]:
+    """The glTF quad's width and height (m), read from its binary buffer."""
+    blob = (folder / "material.bin").read_bytes()
+    xs = [struct.unpack_from("<3f", blob, 12 * i) for i in range(4)]
+    return max(p[0] for p in xs) - min(p[0] for p in xs), max(p[1] for p in xs) - min(p[1] for p in xs)
+
+
+def _digest(folder) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_export_command_writes_the_maps_and_a_quad_of_the_asked_size(tmp_path, capsys):
+    from matscan.cli import main
+    from matscan.mapset import read_mapset
+
+    out = tmp_path / "out"
+    assert main(["export", "@sample", "--out", str(out), "--field-mm", "80,60", "--exr", "--directx-normals"]) == 0
+    assert "80×60 mm from field_mm" in capsys.readouterr().out
+    assert _quad_size_m(out) == pytest.approx((0.08, 0.06))
+    # the folder is a map set again: the sample's maps, within the 16-bit PNGs' steps
+    sample, back = read_mapset("@sample"), read_mapset(out)
+    for name, t in sample.present().items():
+        tol = 1 / 255 if name in ("diffuse", "specular") else 2e-3
+        np.testing.assert_allclose(getattr(back, name).numpy(), t.numpy(), atol=tol if name != "height" else 1e-3)
+    exr = read_image(out / "exr" / "roughness.exr").pixels[..., 0]
+    np.testing.assert_allclose(exr, sample.roughness[0].numpy(), atol=1e-6)
+    dx = read_image(out / "normal_directx.png").pixels * 2 - 1
+    np.testing.assert_allclose(dx[..., 1], -sample.normal[1].numpy(), atol=2e-3)
+    record = json.loads((out / "matscan.json").read_text())
+    assert record["command"] == "export" and record["field_mm"] == [80.0, 60.0]
+    assert set(record["files"]) == {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()} - {
+        "matscan.json"
+    }
+
+
+def test_export_takes_the_field_a_record_gives_then_the_rigs(tmp_path, capsys):
+    from matscan.cli import main
+    from matscan.mapset import write_mapset
+
+    maps = tmp_path / "maps"
+    write_mapset(maps, _maps())
+    assert main(["export", str(maps), "--out", str(tmp_path / "a")]) == 0  # no record: dome24's 120 mm
+    assert _quad_size_m(tmp_path / "a") == pytest.approx((0.12, 0.12))
+    assert main(["export", str(maps), "--out", str(tmp_path / "b"), "--rig", "flash"]) == 0
+    assert _quad_size_m(tmp_path / "b") == pytest.approx((0.0685, 0.0685))
+    # a reconstruction's record says the field its capture covered; an export's keeps it
+    (maps / "matscan.json").write_text(json.dumps({"command": "reconstruct", "field_mm": [50, 40]}))
+    assert main(["export", str(maps), "--out", str(tmp_path / "c")]) == 0
+    assert "50×40 mm from matscan.json of the maps" in capsys.readouterr().out
+    assert main(["export", str(tmp_path / "c"), "--out", str(tmp_path / "d")]) == 0
+    assert main(["export", str(tmp_path / "d"), "--out", str(tmp_path / "e"), "--field-mm", "30,30"]) == 0
+    assert _quad_size_m(tmp_path / "d") == pytest.approx((0.05, 0.04))
+    assert _quad_size_m(tmp_path / "e") == pytest.approx((0.03, 0.03))
+
+
+def test_export_reads_a_library_folder_in_the_metallic_workflow(tmp_path):
+    """A public library's maps (base colour, DirectX normal, roughness, metalness) come out
+    with glTF's packing of the same values: G roughness, B metalness; the normal map in
+    OpenGL's frame."""
+    from matscan.cli import main
+    from matscan.imagefile import write_image
+
+    lib = tmp_path / "Metal007_1K"
+    lib.mkdir()
+    rng = np.random.default_rng(4)
+    rough = rng.uniform(0.2, 0.9, (16, 16, 1)).astype(np.float32)
+    metal = (np.arange(16) >= 8).astype(np.float32)[None, :, None].repeat(16, 0)
+    normal_dx = np.zeros((16, 16, 3), np.float32)
+    normal_dx[..., 1], normal_dx[..., 2] = 0.6, 0.8  # DirectX: +y down, so the surface leans to −y
+    write_image(lib / "Metal007_1K_Color.png", rng.uniform(0.2, 0.8, (16, 16, 3)).astype(np.float32), bits=8)
+    write_image(lib / "Metal007_1K_Roughness.png", rough, bits=16, colourspace="linear")
+    write_image(lib / "Metal007_1K_Metalness.png", metal, bits=8, colourspace="linear")
+    write_image(lib / "Metal007_1K_NormalDX.png", (normal_dx + 1) / 2, bits=16, colourspace="linear")
+    before = _digest(lib)
+    out = tmp_path / "out"
+    assert main(["export", str(lib), "--out", str(out), "--field-mm", "100,100"]) == 0
+    assert _digest(lib) == before
+    mr = read_image(out / "tex_metallic_roughness.png").pixels
+    np.testing.assert_allclose(mr[..., 1], rough[..., 0], atol=1 / 255 + 1e-3)
+    np.testing.assert_allclose(mr[..., 2], metal[..., 0], atol=1 / 255)
+    n = read_image(out / "normal.png").pixels * 2 - 1
+    np.testing.assert_allclose(n[0, 0], [0.0, -0.6, 0.8], atol=2e-3)
+
+
+def test_export_never_writes_into_its_input_and_replaces_only_its_own(tmp_path, capsys):
+    from matscan.cli import main
+    from matscan.mapset import write_mapset
+
+    maps = tmp_path / "maps"
+    write_mapset(maps, _maps())
+    before = _digest(maps)
+    for out in (maps, maps / "exports"):
+        assert main(["export", str(maps), "--out", str(out), "--overwrite", "--overwrite-any"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("matscan: ") and "\n" not in err
+    assert _digest(maps) == before
+    out = tmp_path / "out"
+    assert main(["export", str(maps), "--out", str(out)]) == 0
+    assert main(["export", str(maps), "--out", str(out)]) == 2  # exists
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["export", str(maps), "--out", str(out), "--overwrite", "--field-mm", "10,10"]) == 0
+    assert _quad_size_m(out) == pytest.approx((0.01, 0.01))
+    (out / "notes.txt").write_text("mine")
+    assert main(["export", str(maps), "--out", str(out), "--overwrite"]) == 2
+    assert "notes.txt" in capsys.readouterr().err and (out / "notes.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--field-mm", "0,5"], "--field-mm: '0,5' must be two positive sizes"),
+        (["--field-mm", "5"], "--field-mm: '5' is not 2 comma-separated numbers"),
+        (["--rig", "dome99"], "dome99"),
+    ],
+)
+def test_export_bad_arguments_are_one_line(tmp_path, capsys, argv, words):
+    from matscan.cli import main
+
+    assert main(["export", "@sample", "--out", str(tmp_path / "o"), *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and "\n" not in err and not (tmp_path / "o").exists()
+
+
+def test_export_of_a_missing_folder_or_a_bad_record_names_the_file(tmp_path, capsys):
+    from matscan.cli import main
+    from matscan.mapset import write_mapset
+
+    assert main(["export", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
+    assert "nothing: no such map folder" in capsys.readouterr().err
+    maps = tmp_path / "maps"
+    write_mapset(maps, _maps())
+    (maps / "matscan.json").write_text(json.dumps({"field_mm": [50, "wide"]}))
+    assert main(["export", str(maps), "--out", str(tmp_path / "o")]) == 2
+    assert "matscan.json: field_mm: expected 2 finite numbers" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def _numbers_apart(a: str, b: str) -> float:
+    """The largest relative difference between the numbers of two texts that are equal
+    once their numbers are taken out (inf where they are not)."""
+    import re
+
+    number = r"-?\d+\.\d+(?:e-?\d+)?"
+    if re.sub(number, "#", a) != re.sub(number, "#", b):
+        return math.inf
+    pairs = zip(map(float, re.findall(number, a)), map(float, re.findall(number, b)), strict=True)
+    return max((abs(x - y) / max(abs(x), 1e-12) for x, y in pairs), default=0.0)
+
+
+def test_export_of_a_reconstruction_writes_its_exports_again(tmp_path):
+    """What ``reconstruct`` wrote from its maps in memory, ``export`` writes again from the
+    maps it saved: the same bytes, but where the specular map's 8-bit sRGB file shows (the
+    specular colour texture within one code, its factor in the glTF and MaterialX files
+    within 1%)."""
+    from matscan.cli import main
+
+    assert main(["simulate", "@sample", "--out", str(tmp_path / "cap"), "--size", "32", "--lights", "6"]) == 0
+    assert main(["reconstruct", str(tmp_path / "cap"), "--out", str(tmp_path / "rec")]) == 0
+    assert main(["export", str(tmp_path / "rec"), "--out", str(tmp_path / "exp")]) == 0
+    made = json.loads((tmp_path / "rec" / "matscan.json").read_text())["exports"]
+    assert json.loads((tmp_path / "exp" / "matscan.json").read_text())["exports"] == made
+    assert {"material.gltf", "tex_normal.png", "tex_specular_color.png"} <= set(made)  # the sample's F0 is tinted
+    for name in made:
+        rec, exp = tmp_path / "rec" / name, tmp_path / "exp" / name
+        if name == "tex_specular_color.png":
+            codes = read_image(rec).stored.astype(int) - read_image(exp).stored.astype(int)
+            assert np.abs(codes).max() <= 1
+        elif name in ("material.gltf", "material.mtlx"):
+            assert _numbers_apart(rec.read_text(), exp.read_text()) < 0.01, name
+        elif name not in ("material.glb", "material.usdz"):  # these hold the files above
+            assert exp.read_bytes() == rec.read_bytes(), name

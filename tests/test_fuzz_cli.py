@@ -81,8 +81,12 @@ COMMANDS = {
     "reconstruct": (["CAPTURE"], ["--out", "--model", "--refine", "--steps", "--tile", "--validate", "--overwrite"]),
     "calibrate": ([], ["--out", "--grey", "--chart", "--corners", "--chart-encoding", "--flat-fields", "--overwrite"]),
     "sheet": (["CAPTURE"], ["--out", "--maps", "--columns", "--overwrite"]),
+    "export": (
+        ["MAPS"],
+        ["--out", "--field-mm", "--rig", "--exr", "--directx-normals", "--normal-convention", "--overwrite"],
+    ),
 }
-FLAGS = {"--overwrite", "--flat-fields"}
+FLAGS = {"--overwrite", "--flat-fields", "--exr", "--directx-normals"}
 
 
 @pytest.fixture(scope="module")
