@@ -617,12 +617,32 @@ def cmd_import_rti(args: argparse.Namespace) -> str:
     )
 
 
+def _check_capture_out(args: argparse.Namespace) -> None:
+    """``capture --out`` where a capture may go, before any device is opened: not an input
+    (the rig file, the virtual camera's maps, the folder a folder camera watches) nor in
+    or around one, not the current folder, not inside another capture (it resumes its
+    own folder, so what that holds is checked by the capture itself)."""
+    from matscan.outputs import capture_above, check_place
+    from matscan.samples import maps_folder
+
+    inputs: list[str | Path] = [args.rig] if str(args.rig).endswith(".json") else []
+    for prefix in ("virtual:", "folder:"):
+        if args.camera.startswith(prefix) and len(args.camera) > len(prefix):
+            source = args.camera[len(prefix) :]
+            inputs.append(maps_folder(source) if prefix == "virtual:" else Path(source))
+    given, path = check_place(args.out, inputs)
+    holder = capture_above(path)
+    if holder is not None:
+        raise MatscanError(f"{given}: lies in the capture {holder}; matscan never writes into a capture")
+
+
 def cmd_capture(args: argparse.Namespace) -> str:
     from matscan.capture.acquire import AcquireConfig, acquire, target_maps
     from matscan.hardware.cameras import open_camera
     from matscan.hardware.leds import open_leds
     from matscan.rig import resolve_rig
 
+    _check_capture_out(args)
     rig = resolve_rig(args.rig)
     cfg = AcquireConfig(
         lights=rig.subset(args.lights) if args.lights else None,

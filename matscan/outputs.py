@@ -36,7 +36,7 @@ import shutil
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PureWindowsPath
 from typing import Any
 
 from matscan.atomic import TMP_NAME_EXTRA, atomic_file, atomic_folder, clean_stale, held, output_lock
@@ -90,7 +90,7 @@ def capture_inputs(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     found = [folder]
     try:
-        doc = json.loads((folder / "capture.json").read_text(encoding="utf-8"))
+        doc = json.loads((folder / "capture.json").read_text(encoding="utf-8-sig"))
     except (OSError, ValueError, RecursionError):
         return found
     if not isinstance(doc, dict):
@@ -117,7 +117,7 @@ def calibration_inputs(path: Path) -> list[Path]:
     """A calibration file and the flat fields it names (beside it): inputs too. An
     unreadable or malformed file gives just itself (reading it reports the fault)."""
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        doc = json.loads(path.read_text(encoding="utf-8-sig"))
     except (OSError, ValueError, RecursionError):
         return [path]
     return [path, *_flat_inputs(doc, path.parent)]
@@ -138,7 +138,7 @@ def _capture_files_here(path: Path) -> set[str]:
     return {p.name for p in capture_inputs(path.parent)[1:] if p.parent == path.parent} | {"capture.json"}
 
 
-def _capture_above(path: Path) -> Path | None:
+def capture_above(path: Path) -> Path | None:
     """The nearest folder above ``path`` that holds a ``capture.json`` (a capture that
     ``path`` lies in), or None."""
     for folder in path.parents:
@@ -152,10 +152,36 @@ def _captures_within(folder: Path) -> list[str]:
     return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("capture.json"))
 
 
+def _listed_files(folder: Path) -> set[str] | None:
+    """The files the ``matscan.json`` in ``folder`` lists as its output's (None where it
+    lists none: no record, an unreadable one, or one written before records listed them)."""
+    try:
+        record = json.loads((folder / RECORD).read_text(encoding="utf-8-sig"))
+    except (OSError, ValueError, RecursionError):
+        return None
+    listed = record.get("files") if isinstance(record, dict) else None
+    return {f for f in listed if isinstance(f, str)} if isinstance(listed, list) else None
+
+
+def captures_not_its_own(folder: Path, command: str | None) -> list[str]:
+    """The captures in ``folder`` or below it (their ``capture.json``, relative) that are
+    not part of a previous output of ``command`` there: all of them unless its
+    ``matscan.json`` says ``command`` wrote the folder, and then each one its record does
+    not list (one put there since; where the record lists no files, every capture but
+    the folder's own)."""
+    held = _captures_within(folder)
+    if not held or command is None or _written_by(folder) != command:
+        return held
+    listed = _listed_files(folder)
+    if listed is None:
+        return [c for c in held if c != "capture.json"]
+    return [c for c in held if c not in listed]
+
+
 def _written_by(folder: Path) -> str | None:
     """The command a ``matscan.json`` in ``folder`` says wrote it (None where none says)."""
     try:
-        record = json.loads((folder / RECORD).read_text(encoding="utf-8"))
+        record = json.loads((folder / RECORD).read_text(encoding="utf-8-sig"))
     except (OSError, ValueError, RecursionError):
         return None
     command = record.get("command") if isinstance(record, dict) else None
@@ -170,7 +196,7 @@ def _rti_photos_beside(path: Path) -> list[str]:
     try:
         if path.stat().st_size > 2**20:
             return []
-        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+        lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
     except OSError:
         return []
     found = []
@@ -178,8 +204,9 @@ def _rti_photos_beside(path: Path) -> list[str]:
         parts = line.split()
         if len(parts) >= 4 and not parts[0].startswith("#"):
             name = " ".join(parts[:-3])
-            if "\x00" not in name and (path.parent / name).is_file():
-                found.append(name)
+            base = PureWindowsPath(name).name if "\\" in name else Path(name).name  # as parse_lp reads it
+            if "\x00" not in base and base and (path.parent / base).is_file():
+                found.append(base)
     return found
 
 
@@ -189,7 +216,7 @@ def foreign_entries(folder: Path) -> list[str]:
     ``matscan.json`` is all foreign."""
     entries = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir())
     try:
-        record = json.loads((folder / RECORD).read_text(encoding="utf-8"))
+        record = json.loads((folder / RECORD).read_text(encoding="utf-8-sig"))
     except (OSError, ValueError, RecursionError):
         return entries
     if not isinstance(record, dict):
@@ -213,11 +240,11 @@ def write_record_files(folder: Path, command: str) -> None:
 
     path = folder / RECORD
     if path.is_file():
-        record = json.loads(path.read_text(encoding="utf-8"))
+        record = json.loads(path.read_text(encoding="utf-8-sig"))
     else:
         record = {"format": OUTPUT_FORMAT, "command": command, "matscan_version": __version__}
-    record["files"] = sorted(
-        p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir() and p.name != RECORD
+    record["files"] = sorted(  # every file but this record (a nested one, synth's say, is a file of the output)
+        p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir() and p != path
     )
     path.write_text(dumps(record, RECORD), encoding="utf-8")
 
@@ -238,23 +265,24 @@ def _name_max(folder: Path) -> int:
         return 255
 
 
-def check_destination(
-    out: str | Path,
-    inputs: Iterable[str | Path] = (),
-    kind: str = "folder",
-    overwrite: bool = False,
-    overwrite_any: bool = False,
-    flag: str = "--out",
-    command: str | None = None,
-) -> Path:
-    """Check an output path before any work (module doc); return it resolved. ``command``
-    names the command writing it: a folder holding a capture is replaced only by the
-    command that wrote it."""
-    if kind not in ("folder", "file"):
-        raise ValueError(f"kind {kind!r}")
+def check_place(out: str | Path, inputs: Iterable[str | Path] = (), flag: str = "--out") -> tuple[Path, Path]:
+    """The checks of where an output lies, whatever it replaces (:func:`check_destination`
+    adds those; ``matscan capture``, which resumes its own folder, makes only these and
+    its own): a usable UTF-8 path, not a symbolic link, not the root or the current
+    folder, not an input nor inside or around one. Returns the path as given and
+    resolved."""
     text = str(out)
     if not text or "\x00" in text:
         raise MatscanError(f"{flag}: {text!r} is not a usable path")
+    inputs = list(inputs)
+    for item in (text, *map(str, inputs)):
+        try:
+            item.encode("utf-8")
+        except UnicodeEncodeError:
+            name = os.fsencode(item).decode("utf-8", errors="backslashreplace")
+            raise MatscanError(
+                f"{name}: the path is not valid UTF-8, and matscan records paths in JSON and HTML files; rename it"
+            ) from None
     given = Path(text)
     if given.is_symlink():
         if not given.exists():
@@ -276,9 +304,27 @@ def check_destination(
             raise input_error(
                 given, f"{how} the input {item}; matscan never writes over its inputs (choose another {flag})"
             )
+    return given, path
+
+
+def check_destination(
+    out: str | Path,
+    inputs: Iterable[str | Path] = (),
+    kind: str = "folder",
+    overwrite: bool = False,
+    overwrite_any: bool = False,
+    flag: str = "--out",
+    command: str | None = None,
+) -> Path:
+    """Check an output path before any work (module doc); return it resolved. ``command``
+    names the command writing it: a folder holding a capture is replaced only by the
+    command that wrote it."""
+    if kind not in ("folder", "file"):
+        raise ValueError(f"kind {kind!r}")
+    given, path = check_place(out, inputs, flag)
     if kind == "file" and path.name in _capture_files_here(path):
         raise input_error(given, f"belongs to the capture in {path.parent}; matscan never replaces a capture's files")
-    if path.exists() and (holder := _capture_above(path)) is not None:
+    if path.exists() and (holder := capture_above(path)) is not None:
         raise input_error(
             given, f"lies in the capture {holder}; matscan never replaces a capture's files (choose another {flag})"
         )
@@ -314,8 +360,8 @@ def check_destination(
                     raise input_error(
                         given, "folder exists and is not empty (choose another --out, or pass --overwrite)"
                     )
-                held_captures = _captures_within(path)
-                if held_captures and (command is None or _written_by(path) != command):
+                held_captures = captures_not_its_own(path, command)
+                if held_captures:
                     raise input_error(
                         given,
                         f"holds a capture ({held_captures[0]}); matscan never replaces a capture, whatever the "
@@ -362,6 +408,12 @@ class OutputClaim:
             write_record_files(tmp, self.command)
             # again just before the swap: a file put into the old output during the work
             # would otherwise go with it
+            if self.path.is_dir() and (held := captures_not_its_own(self.path, self.command)):
+                raise input_error(
+                    self.path,
+                    f"a capture ({held[0]}) appeared there during the work; matscan never replaces a capture, "
+                    "and nothing was replaced",
+                )
             if self.path.is_dir() and not self.overwrite_any:
                 foreign = foreign_entries(self.path)
                 if foreign:
@@ -396,21 +448,30 @@ def claim_output(
             yield _ACTIVE[resolved]
         return
     path = check_destination(out, inputs, kind, overwrite, overwrite_any, flag, command)
+    made = [p for p in (path.parent, *path.parent.parents) if not p.exists()]  # deepest first
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise input_error(path.parent, f"cannot create this folder ({exc.strerror})") from None
-    with output_lock(path):
-        check_destination(out, inputs, kind, overwrite, overwrite_any, flag, command)  # again, now that it is ours
-        try:
-            clean_stale(path)
-        except OSError as exc:
-            raise input_error(path, f"cannot remove a stale temporary beside it ({exc.strerror})") from None
-        _ACTIVE[path] = OutputClaim(path, kind, overwrite, command, overwrite_any)
-        try:
-            yield _ACTIVE[path]
-        finally:
-            del _ACTIVE[path]
+    try:
+        with output_lock(path):
+            check_destination(out, inputs, kind, overwrite, overwrite_any, flag, command)  # again, now it is ours
+            try:
+                clean_stale(path)
+            except OSError as exc:
+                raise input_error(path, f"cannot remove a stale temporary beside it ({exc.strerror})") from None
+            _ACTIVE[path] = OutputClaim(path, kind, overwrite, command, overwrite_any)
+            try:
+                yield _ACTIVE[path]
+            finally:
+                del _ACTIVE[path]
+    finally:
+        if not path.exists():  # the command failed: the folders made for its output go too, where empty
+            for folder in made:
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break
 
 
 #: The claims this process holds, by path (a nested claim of the same output reuses its flags).

@@ -9,6 +9,7 @@ and nothing left behind (no temporaries, no lock files).
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import signal
 import subprocess
@@ -545,3 +546,109 @@ def test_inline_calibration_flat_fields_are_inputs(tmp_path):
     assert cap / "../flats/flat0.exr" in capture_inputs(cap)
     with pytest.raises(MatscanError, match="contains the input"):
         check_destination(tmp_path / "flats", [*capture_inputs(cap)], overwrite=True, overwrite_any=True)
+
+
+# --- found by an audit of the command line (2026-11-30) ---------------------------------
+
+
+@pytest.mark.parametrize("command", ["simulate", "synth"])
+def test_a_capture_moved_into_an_output_of_the_command_that_makes_captures_is_kept(capture, capsys, tmp_path, command):
+    """simulate and synth may replace their own captures, not one put among them since,
+    whatever the flags."""
+    out = tmp_path / "out"
+    argv = {
+        "simulate": ["simulate", "@sample", "--out", str(out), "--size", "16", "--lights", "6"],
+        "synth": ["synth", "--out", str(out), "--count", "1", "--size", "16"],
+    }[command]
+    assert main(argv) == 0
+    capture.rename(out / "real")
+    assert_refused([*argv, "--overwrite", "--overwrite-any"], capsys, tmp_path, "holds a capture (real/capture.json)")
+
+
+def test_synth_replaces_its_own_output(tmp_path, capsys):
+    # its materials' own matscan.json files are files of its output, listed as such
+    argv = ["synth", "--out", str(tmp_path / "s"), "--count", "1", "--size", "16"]
+    assert main(argv) == 0
+    assert main([*argv, "--seed", "3", "--overwrite"]) == 0, capsys.readouterr().err
+
+
+def test_files_named_by_a_capture_json_with_a_byte_order_mark_are_inputs(tmp_path, capsys):
+    """load_capture reads a capture.json that starts with a UTF-8 BOM; the output checks
+    must see the photos it names as well."""
+    assert main(["simulate", "@sample", "--out", str(tmp_path / "photos"), "--size", "16", "--lights", "6"]) == 0
+    for p in tmp_path.glob("photos/*.json"):
+        p.unlink()
+    doc = {
+        "format": "matscan-capture/1",
+        "rig": "dome24",
+        "images": [{"light": k, "file": f"../photos/led_{k:02d}.png"} for k in (0, 4, 8, 12, 16, 20)],
+    }
+    (tmp_path / "cap").mkdir()
+    (tmp_path / "cap" / "capture.json").write_bytes(b"\xef\xbb\xbf" + json.dumps(doc).encode())
+    argv = ["reconstruct", str(tmp_path / "cap"), "--out", str(tmp_path / "photos"), "--overwrite", "--overwrite-any"]
+    assert_refused([*argv, "--model", "none"], capsys, tmp_path, "contains the input")
+
+
+def test_an_rti_light_file_naming_windows_paths_is_never_replaced(tmp_path, capsys):
+    rti = tmp_path / "rti"
+    rti.mkdir()
+    for name in ("a.png", "b.png"):
+        (rti / name).write_bytes(b"photo")
+    (rti / "dirs.lp").write_text("2\nC:\\dome\\a.png 0.1 0.2 0.97\nC:\\dome\\b.png -0.3 0.1 0.95\n")
+    argv = ["rig", "to-lp", "dome24", "--out", str(rti / "dirs.lp"), "--overwrite"]
+    assert_refused(argv, capsys, rti, "is the light file of the RTI photos beside it (a.png")
+
+
+def test_import_rti_counts_its_light_file_as_an_input(tmp_path, capsys):
+    rti, lights = tmp_path / "rti", tmp_path / "lights"
+    rti.mkdir()
+    lights.mkdir()
+    for name in ("a.png", "b.png"):
+        (rti / name).write_bytes(b"photo")
+    (lights / "dirs.lp").write_text("2\na.png 0.1 0.2 0.97\nb.png -0.3 0.1 0.95\n")
+    argv = ["import-rti", str(rti), "--lp", str(lights / "dirs.lp"), "--out", str(lights)]
+    assert_refused([*argv, "--overwrite", "--overwrite-any"], capsys, tmp_path, "contains the input")
+
+
+def test_capture_checks_where_it_writes_before_opening_a_device(capture, capsys, tmp_path, monkeypatch):
+    maps = tmp_path / "maps"
+    (tmp_path / "elsewhere").mkdir()
+    from matscan.mapset import read_mapset, write_mapset
+
+    write_mapset(maps, read_mapset("@sample"))
+    base = ["capture", "--leds", "virtual", "--lights", "6"]
+    assert_refused(
+        [*base, "--camera", f"virtual:{maps}", "--out", str(maps / "cap")], capsys, tmp_path, "lies inside the input"
+    )
+    assert_refused(
+        [*base, "--camera", "virtual:@sample", "--out", str(capture / "new")], capsys, tmp_path, "lies in the capture"
+    )
+    assert_refused(
+        [*base, "--camera", f"folder:{tmp_path / 'incoming'}", "--out", str(tmp_path / "incoming" / "c")],
+        capsys,
+        tmp_path,
+        "lies inside the input",
+    )
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    assert_refused([*base, "--camera", "virtual:@sample", "--out", "."], capsys, tmp_path, "is the current folder")
+
+
+def test_a_failed_command_leaves_no_folders_it_made_for_its_output(tmp_path, capsys):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "capture.json").write_text("{")
+    code, err = run_cli(["reconstruct", str(bad), "--out", str(tmp_path / "new" / "a" / "out")], capsys)
+    assert code == 2 and "capture.json: not valid JSON" in err
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "kept").mkdir()  # a folder that was there stays
+    code, err = run_cli(["reconstruct", str(bad), "--out", str(tmp_path / "kept" / "a" / "out")], capsys)
+    assert code == 2 and (tmp_path / "kept").is_dir() and not (tmp_path / "kept" / "a").exists()
+
+
+@pytest.mark.skipif(sys.platform == "darwin", reason="macOS file systems refuse names that are not UTF-8")
+def test_a_path_that_is_not_utf8_is_refused_before_the_work(capture, capsys, tmp_path):
+    odd = Path(os.fsdecode(bytes(tmp_path) + b"/cap\xff"))
+    capture.rename(odd)
+    argv = ["reconstruct", str(odd), "--out", str(tmp_path / "o"), "--model", "none"]
+    assert_refused(argv, capsys, tmp_path, "cap\\xff: the path is not valid UTF-8")
+    assert not (tmp_path / "o").exists()

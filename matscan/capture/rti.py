@@ -27,14 +27,15 @@ import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path, PureWindowsPath
+from typing import Any
 
 import torch
 
 from matscan.errors import MatscanError, input_error
 from matscan.imagefile import read_image
-from matscan.jsonfile import dumps
+from matscan.jsonfile import check_file_name, dumps, short_repr
 from matscan.outputs import claim_output
-from matscan.rig import Camera, Light, Rig, rig_to_dict
+from matscan.rig import MAX_MM, Camera, Light, Rig, rig_to_dict
 
 #: The ``.lp`` y convention matscan assumes unless told: established on the rti-icon
 #: capture (tests/test_rti.py): both readings relight its photos equally well (re-render
@@ -120,7 +121,7 @@ def read_lp(path: str | Path, y: str = LP_Y_DEFAULT) -> LightFile:
     if not path.is_file():
         raise input_error(path, "no such light file")
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        text = path.read_text(encoding="utf-8-sig", errors="replace")
     except OSError as exc:
         raise input_error(path, f"cannot read it ({exc.strerror})") from None
     return parse_lp(text, str(path), y)
@@ -132,9 +133,16 @@ def rig_from_lp(
     name: str = "rti",
 ) -> Rig:
     """A rig of directional lights (one per photo, in file order) and an orthographic
-    camera looking straight down, covering ``field_mm``."""
+    camera looking straight down, covering ``field_mm`` (each side above 0 and at most
+    ``MAX_MM``, as a rig file allows). ``name`` keeps its printable characters (a file
+    name's stem, say), the others become "_"."""
+    for side in field_mm:
+        if not (math.isfinite(side) and 0 < side <= MAX_MM):
+            raise MatscanError(
+                f"field: {list(field_mm)!r} must be two sizes (width, height) above 0 and at most {MAX_MM:g} mm"
+            )
     return Rig(
-        name=name,
+        name="".join(c if c.isprintable() else "_" for c in name) or "rti",
         reference_distance_mm=RTI_REFERENCE_MM,
         camera=Camera(direction=(0.0, 0.0, 1.0)),
         field_mm=(float(field_mm[0]), float(field_mm[1])),
@@ -192,28 +200,36 @@ def import_rti(
     if not folder.is_dir():
         raise input_error(folder, "is not a folder")
     lp_path = Path(lp) if lp is not None else find_lp(folder)
-    lights = read_lp(lp_path, y)
-    missing = [f for f in lights.files if not (folder / f).is_file()]
-    if missing:
-        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
-        raise input_error(folder / missing[0], f"is listed in {lp_path.name} but missing{more}")
-    first = read_image(folder / lights.files[0])
-    height, width = first.stored.shape[:2]
-    for f in lights.files[1:]:
-        img = read_image(folder / f)
-        if img.stored.shape[:2] != (height, width):
-            raise input_error(
-                folder / f, f"is {img.stored.shape[1]}×{img.stored.shape[0]}, the other photos {width}×{height}"
-            )
     fw = float(field_width_mm) if field_width_mm is not None else RTI_FIELD_WIDTH_MM
-    if not (math.isfinite(fw) and fw > 0):
-        raise MatscanError(f"field width: {field_width_mm!r} must be a positive number of mm")
-    rig = rig_from_lp(lights, (fw, fw * height / width), name=folder.name or "rti")
-    linear = first.kind == "float"
-    with (
-        claim_output(out, "import-rti", inputs=[folder], overwrite=overwrite, overwrite_any=overwrite_any) as claim,
-        claim.folder() as tmp,
-    ):
+    if not (math.isfinite(fw) and 0 < fw <= MAX_MM):
+        raise MatscanError(f"field width: {field_width_mm!r} must be a number of mm above 0 and at most {MAX_MM:g}")
+    inputs = [folder, lp_path]
+    with claim_output(out, "import-rti", inputs, overwrite=overwrite, overwrite_any=overwrite_any) as claim:
+        lights = read_lp(lp_path, y)
+        missing = [f for f in lights.files if not (folder / f).is_file()]
+        if missing:
+            more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+            raise input_error(folder / missing[0], f"is listed in {lp_path.name} but missing{more}")
+        for f in lights.files:  # names capture.json can hold
+            check_file_name(f, f"{lp_path}: {short_repr(f)}")
+        first = read_image(folder / lights.files[0])
+        height, width = first.stored.shape[:2]
+        for f in lights.files[1:]:
+            img = read_image(folder / f)
+            if img.stored.shape[:2] != (height, width):
+                raise input_error(
+                    folder / f, f"is {img.stored.shape[1]}×{img.stored.shape[0]}, the other photos {width}×{height}"
+                )
+        rig = rig_from_lp(lights, (fw, fw * height / width), name=folder.name or "rti")
+        linear = first.kind == "float"
+        _import_into(claim, folder, lp_path, y, lights, rig, linear)
+    return Path(out), list(lights.warnings)
+
+
+def _import_into(claim: Any, folder: Path, lp_path: Path, y: str, lights: LightFile, rig: Rig, linear: bool) -> None:
+    """Write the capture folder (copies of the photos, ``rig.json``, ``capture.json``)
+    atomically through ``claim``."""
+    with claim.folder() as tmp:
         for f in lights.files:
             shutil.copyfile(folder / f, tmp / f)
         (tmp / "rig.json").write_text(dumps(rig_to_dict(rig), "rig.json"), encoding="utf-8")
@@ -225,7 +241,6 @@ def import_rti(
             "source": {"rti_folder": folder.name, "lp": lp_path.name, "lp_y": y},
         }
         (tmp / "capture.json").write_text(dumps(doc, "capture.json"), encoding="utf-8")
-    return Path(out), list(lights.warnings)
 
 
 def normal_curl(normal: torch.Tensor) -> float:
