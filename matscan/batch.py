@@ -44,7 +44,12 @@ def expand_captures(specs: Sequence[str]) -> list[Path]:
     for spec in specs:
         path = Path(spec)
         if path.is_file() and path.name != "capture.json":
-            lines = path.read_text(encoding="utf-8").splitlines()
+            try:
+                lines = path.read_text(encoding="utf-8-sig").splitlines()
+            except UnicodeDecodeError:
+                raise input_error(path, "is a file but not a text list of capture folders (not UTF-8)") from None
+            except OSError as exc:
+                raise input_error(path, f"cannot read it ({exc.strerror})") from None
             entries = [ln.split("#", 1)[0].strip() for ln in lines]
             found = [(path.parent / e if not Path(e).is_absolute() else Path(e)) for e in entries if e]
         elif any(c in spec for c in "*?["):
@@ -63,13 +68,19 @@ def expand_captures(specs: Sequence[str]) -> list[Path]:
     return out
 
 
+#: Names in a batch folder that are the batch's own, never a capture's output.
+RESERVED = frozenset({"thumbs", "index.html", MANIFEST})
+
+
 def output_names(captures: Sequence[Path]) -> list[str]:
-    """A unique output folder name per capture: its folder's name, then -2, -3, … ."""
+    """A unique output folder name per capture: its folder's name (without leading dots:
+    a hidden output would hide from the catalogue), then -2, -3, … (also where the name is
+    one of the batch's own, ``RESERVED``)."""
     names: list[str] = []
     for c in captures:
-        base = c.resolve().name or "capture"
+        base = c.resolve().name.lstrip(".") or "capture"
         name, k = base, 2
-        while name in names:
+        while name in names or name in RESERVED:
             name, k = f"{base}-{k}", k + 1
         names.append(name)
     return names
@@ -144,11 +155,9 @@ def batch(
     paths = expand_captures(captures)
     names = output_names(paths)
     out = Path(out)
-    where = out.resolve()
-    for path in paths:
-        if where == path.resolve() or path.resolve() in where.parents:
-            how = "is" if where == path.resolve() else "lies inside"
-            raise input_error(out, f"{how} the input capture {path}; matscan never writes into its inputs")
+    from matscan.outputs import check_place
+
+    check_place(out, paths)  # not an input capture, nor in or around one; a usable path
     settings = json_safe(asdict(cfg))
     created = not out.exists()
     with output_lock(out):
@@ -220,8 +229,9 @@ def _open_manifest(out: Path, settings: dict[str, Any]) -> dict[str, Any]:
     path = out / MANIFEST
     if path.exists():
         manifest = read_json(path)
-        if manifest.get("format") != MANIFEST_FORMAT:
+        if not isinstance(manifest, dict) or manifest.get("format") != MANIFEST_FORMAT:
             raise input_error(path, f"is not a {MANIFEST_FORMAT} manifest")
+        _check_entries(manifest, path)
         if _as_now(manifest.get("settings")) != settings:
             raise input_error(
                 path,
@@ -233,6 +243,27 @@ def _open_manifest(out: Path, settings: dict[str, Any]) -> dict[str, Any]:
         raise input_error(out, "exists and is not a matscan batch folder; choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     return {"format": MANIFEST_FORMAT, "settings": settings, "captures": {}}
+
+
+#: A capture's states in a manifest.
+STATES = ("pending", "done", "failed")
+
+
+def _check_entries(manifest: dict[str, Any], path: Path) -> None:
+    """A manifest's captures as the batch and its catalogue read them; errors name the
+    file and the entry."""
+    from matscan.jsonfile import check_object, check_string
+
+    for name, entry in check_object(manifest.get("captures"), f"{path}: captures").items():
+        where = f"{path}: captures.{name}"
+        check_object(entry, where)
+        check_string(entry.get("capture"), f"{where}.capture")
+        check_string(entry.get("state"), f"{where}.state", STATES)
+        for key, kind in (("validation", dict), ("confidence", dict), ("warnings", list)):
+            if key in entry and not isinstance(entry[key], kind):
+                raise input_error(path, f"captures.{name}.{key}: expected {'an object' if kind is dict else 'a list'}")
+        if entry["state"] == "done" and not isinstance(entry.get("rerender_rmse"), (int, float)):
+            raise input_error(path, f"captures.{name}.rerender_rmse: expected a number for a finished capture")
 
 
 def _save(out: Path, manifest: dict[str, Any]) -> None:

@@ -59,7 +59,7 @@ def test_inputs_and_cluster_shape(captures, tmp_path):
         batch([str(captures / "cork")], tmp_path / "out", workers=2, scheduler="tcp://127.0.0.1:1")
     with pytest.raises(MatscanError, match="no such weights file"):
         batch([str(captures / "cork")], tmp_path / "out", ReconstructConfig(model=str(tmp_path / "nope.safetensors")))
-    with pytest.raises(MatscanError, match=f"lies inside the input capture {captures / 'cork'}"):
+    with pytest.raises(MatscanError, match=f"lies inside the input {captures / 'cork'}"):
         batch([str(captures / "cork")], captures / "cork" / "batch")
     assert not (tmp_path / "out").exists() and not (captures / "cork" / "batch").exists()
     with pytest.raises(MatscanError, match="cannot reach"):  # a batch that cannot start leaves nothing
@@ -200,3 +200,46 @@ def test_a_manifest_from_before_calibration_files_resumes_without_one(tmp_path):
     assert _open_manifest(tmp_path, json_safe(asdict(cfg)))["settings"] == old
     with pytest.raises(MatscanError, match="other reconstruction settings"):
         _open_manifest(tmp_path, json_safe(asdict(replace(cfg, calibration=str(tmp_path / "cal.json")))))
+
+
+def test_a_list_file_that_is_not_text_is_one_line(captures, tmp_path):
+    (tmp_path / "latin1.txt").write_bytes(f"{captures / 'cork'}\n\xe9t\xe9\n".encode("latin-1"))
+    for spec in (tmp_path / "latin1.txt", next((captures / "cork").glob("*.png"))):
+        with pytest.raises(MatscanError, match="is a file but not a text list of capture folders") as info:
+            expand_captures([str(spec)])
+        assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("captures_value", "words"),
+    [
+        (None, "captures: expected an object"),
+        ({"cork": 5}, "captures.cork: expected an object"),
+        ({"cork": {"capture": "/x"}}, "captures.cork.state: expected a non-empty string"),
+        ({"cork": {"capture": "/x", "state": "lost"}}, "captures.cork.state: 'lost' is not one of"),
+        ({"cork": {"capture": "/x", "state": "done"}}, "captures.cork.rerender_rmse: expected a number"),
+        ({"cork": {"capture": "/x", "state": "done", "rerender_rmse": 0.1, "warnings": "x"}}, "expected a list"),
+    ],
+)
+def test_a_damaged_manifest_is_one_line_naming_it(tmp_path, captures_value, words):
+    from dataclasses import asdict
+
+    from matscan.batch import MANIFEST, MANIFEST_FORMAT, _open_manifest, json_safe
+    from matscan.reconstruct import ReconstructConfig
+
+    settings = json_safe(asdict(ReconstructConfig()))
+    doc = {"format": MANIFEST_FORMAT, "settings": settings}
+    if captures_value is not None:
+        doc["captures"] = captures_value
+    (tmp_path / MANIFEST).write_text(json.dumps(doc))
+    with pytest.raises(MatscanError, match=words) as info:
+        _open_manifest(tmp_path, settings)
+    assert MANIFEST in str(info.value) and "\n" not in str(info.value)
+    (tmp_path / MANIFEST).write_text("[1, 2]")
+    with pytest.raises(MatscanError, match="is not a matscan-batch"):
+        _open_manifest(tmp_path, settings)
+
+
+def test_a_capture_named_as_the_batchs_own_files_gets_another_name(tmp_path):
+    names = output_names([tmp_path / "thumbs", tmp_path / "a" / "thumbs", tmp_path / ".hidden", tmp_path / "cork"])
+    assert names == ["thumbs-2", "thumbs-3", "hidden", "cork"]
