@@ -199,9 +199,9 @@ def _read_map(path: Path, name: str, meta: dict[str, Any]) -> Tensor:
     elif c == 2:
         raise input_error(path, f"has 2 channels; a {name} map needs 3")
     t = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).float()
-    if not torch.isfinite(t).all():
-        raise input_error(path, "holds NaN or infinite values")
     linear_file = img.kind == "float"
+    if linear_file:  # integer files hold 0 to 1 by construction; float ones may hold anything
+        t = check_float_map(t, path, name)
     if spec.encoding == "srgb" and not linear_file:
         t = srgb_to_linear(t)
     elif spec.encoding == "normal":
@@ -218,6 +218,36 @@ def _read_map(path: Path, name: str, meta: dict[str, Any]) -> Tensor:
 
 #: The largest height magnitude a map set may record (1 km; real ones are millimetres).
 MAX_HEIGHT_MM = 1e6
+#: The largest value of an emissive map or a normal map's component in a float file
+#: (emission in photo units, 1 = the exposure's white).
+MAX_FLOAT_VALUE = 1e6
+#: How far outside [0, 1] a float file's fraction (albedo, F0, roughness, metalness,
+#: coverage) may stray from filtering or rounding; such values are clamped, others refused.
+FRACTION_SLACK = 0.01
+
+
+def check_float_map(t: Tensor, path: Path, name: str) -> Tensor:
+    """A float file's ``name`` map (any layout) with its values checked: finite;
+    fractions in [0, 1] (within ``FRACTION_SLACK``, then clamped), heights within
+    ``MAX_HEIGHT_MM``, the rest within ``MAX_FLOAT_VALUE``. Errors name the file and the
+    values found."""
+    if not torch.isfinite(t).all():
+        raise input_error(path, "holds NaN or infinite values")
+    lo, hi = float(t.min()), float(t.max())
+    if name == "height":
+        low, high = -MAX_HEIGHT_MM, MAX_HEIGHT_MM
+    elif name in ("emissive", "normal"):
+        low, high = (0.0 if name == "emissive" else -MAX_FLOAT_VALUE), MAX_FLOAT_VALUE
+    else:
+        low, high = -FRACTION_SLACK, 1 + FRACTION_SLACK
+    if lo < low or hi > high:
+        unit = " mm" if name == "height" else ""
+        raise input_error(
+            path, f"holds values from {lo:.4g} to {hi:.4g}{unit}; a {name} map's lie from {low:g} to {high:g}{unit}"
+        )
+    return t.clamp(0, 1) if high == 1 + FRACTION_SLACK else t
+
+
 _FILE_KEYS = {"file": True, "bits": True}
 
 

@@ -186,3 +186,14 @@ def test_not_a_capture(tmp_path):
     (tmp_path / "empty" / "capture.json").write_text("{")
     with pytest.raises(MatscanError, match=r"capture\.json: not valid JSON"):
         load_capture(tmp_path / "empty")
+
+
+def test_a_float_photo_far_past_white_is_refused_naming_it(tmp_path):
+    """A float photo may hold highlights above 1, not 3e38 (which would overflow every
+    sum of squares downstream and fail the reconstruction at its end)."""
+    images = photos(3)
+    images[1, 0, 2, 2] = 3e38
+    write_capture(tmp_path / "c", images, builtin_rig("dome24"), light_indices=[0, 1, 2], encoding="linear", bits=32)
+    name = json.loads((tmp_path / "c" / "capture.json").read_text())["images"][1]["file"]
+    with pytest.raises(MatscanError, match=rf"{name}: holds values up to 3e\+38; a float photo's lie within ±1e\+06"):
+        load_capture(tmp_path / "c")

@@ -104,3 +104,55 @@ def test_output_folder_is_not_clobbered(tmp_path):
     with pytest.raises(MatscanError, match="not empty"):
         write_mapset(tmp_path / "m", maps)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize(
+    ("name", "values", "words"),
+    [
+        (
+            "roughness",
+            1e30,
+            r"roughness\.exr: holds values from .* to 1e\+30; a roughness map's lie from -0\.01 to 1\.01",
+        ),
+        ("diffuse", 2.0, r"diffuse\.exr: holds values from .* to 2; a diffuse map's lie from -0\.01 to 1\.01"),
+        ("normal", float("nan"), r"normal\.exr: holds NaN or infinite values"),
+        ("height", -3e6, r"height\.exr: holds values from -3e\+06 .* mm; a height map's lie from -1e\+06 to 1e\+06 mm"),
+    ],
+)
+def test_float_map_files_hold_what_their_maps_can(tmp_path, name, values, words):
+    """A float file can hold any number; one far outside what its map means (units
+    mistaken, a blown-up export) is refused naming the file, before it reaches a renderer."""
+    write_mapset(tmp_path / "m", full_maps(8), file_format="exr")
+    path = tmp_path / "m" / f"{name}.exr"
+    t = read_mapset(tmp_path / "m").present()[name].permute(1, 2, 0).numpy().copy()
+    t[2, 3] = values
+    write_image(path, t, bits=32)
+    with pytest.raises(MatscanError, match=words) as info:
+        read_mapset(tmp_path / "m")
+    assert "\n" not in str(info.value)
+
+
+def test_float_fractions_a_little_outside_0_1_are_clamped(tmp_path):
+    write_mapset(tmp_path / "m", random_maps(8), file_format="exr")
+    t = np.full((8, 8, 1), 1.004, np.float32)
+    t[0, 0] = -0.003
+    write_image(tmp_path / "m" / "roughness.exr", t, bits=32)
+    r = read_mapset(tmp_path / "m").roughness
+    assert float(r.max()) == 1.0 and float(r.min()) == 0.0
+
+
+def test_library_float_maps_are_checked_as_matscans(tmp_path):
+    from matscan.materials.library import read_map_folder
+
+    lib = tmp_path / "Rock01"
+    lib.mkdir()
+    write_image(lib / "Rock01_Color.exr", np.full((8, 8, 3), 0.4, np.float32), bits=32)
+    write_image(lib / "Rock01_NormalGL.png", np.full((8, 8, 3), 0.5, np.float32) + [0, 0, 0.5], bits=8)
+    rough = np.full((8, 8, 1), 0.5, np.float32)
+    rough[1, 1] = np.nan
+    write_image(lib / "Rock01_Roughness.exr", rough, bits=32)
+    with pytest.raises(MatscanError, match=r"Rock01_Roughness\.exr: holds NaN or infinite values"):
+        read_map_folder(lib)
+    write_image(lib / "Rock01_Roughness.exr", np.full((8, 8, 1), 255.0, np.float32), bits=32)  # 8-bit units
+    with pytest.raises(MatscanError, match=r"Rock01_Roughness\.exr: holds values from 255 to 255"):
+        read_map_folder(lib)

@@ -236,6 +236,10 @@ def _decode(path: Path) -> tuple[Tensor, Tensor, tuple[int, bool]]:
         return t, saturated, (img.bits, img.kind == "raw")
     if not torch.isfinite(t).all():
         raise input_error(path, "holds NaN or infinite values")
+    if float(t.abs().max()) > MAX_PHOTO_VALUE:
+        raise input_error(
+            path, f"holds values up to {float(t.abs().max()):.4g}; a float photo's lie within ±{MAX_PHOTO_VALUE:g}"
+        )
     return t, torch.zeros(1, *t.shape[1:], dtype=torch.bool), (32, False)
 
 
@@ -421,6 +425,10 @@ def _read_calibration(raw: Any, folder: Path, path: Path) -> tuple[dict[str, Any
         return dict(raw), None
     raise input_error(path, f"calibration: expected a file name or an object, got {short_repr(raw)}")
 
+
+#: The largest magnitude a float (EXR, TIFF) photo may hold, in its own units (1 = white
+#: for matscan's photos; a bright highlight a few hundred).
+MAX_PHOTO_VALUE = 1e6
 
 #: Exposures (s) as a capture or a calibration records them: an hour at most (a camera's
 #: longest are a few minutes; a larger number is likely milliseconds), and down to the

@@ -34,7 +34,7 @@ from matscan.brdf import metallic_to_specular
 from matscan.color import srgb_to_linear
 from matscan.errors import MatscanError, input_error
 from matscan.imagefile import READABLE, read_image
-from matscan.mapset import MapSet, normalize_normals, read_mapset
+from matscan.mapset import MapSet, check_float_map, normalize_normals, read_mapset
 
 #: Words in a file name that identify a map (after splitting on separators and case changes).
 KEYWORDS: dict[str, tuple[str, ...]] = {
@@ -83,11 +83,15 @@ def classify(path: Path) -> str | None:
     return None
 
 
-def _image(path: Path) -> tuple[np.ndarray, str]:
+def _image(path: Path, name: str = "diffuse") -> tuple[np.ndarray, str]:
+    """A map file's pixels (alpha dropped) and kind; a float file's values checked as a
+    ``name`` map's (:func:`matscan.mapset.check_float_map`)."""
     img = read_image(path)
     px = img.pixels
     if px.shape[2] == 4:
         px = px[:, :, :3]
+    if img.kind == "float":
+        px = check_float_map(torch.from_numpy(np.ascontiguousarray(px)), path, name).numpy()
     return px, img.kind
 
 
@@ -100,12 +104,12 @@ def _colour(path: Path) -> Tensor:
 
 
 def _grey(path: Path) -> Tensor:
-    px, _ = _image(path)
+    px, _ = _image(path, "roughness")  # a fraction, as roughness, glossiness, metalness and opacity are
     return torch.from_numpy(np.ascontiguousarray(px.mean(axis=2, keepdims=True))).permute(2, 0, 1).float()
 
 
 def _normal(path: Path, directx: bool) -> Tensor:
-    px, _ = _image(path)
+    px, _ = _image(path, "normal")
     if px.shape[2] != 3:
         raise input_error(path, f"a normal map needs 3 channels, found {px.shape[2]}")
     n = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).float() * 2 - 1
