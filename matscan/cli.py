@@ -20,6 +20,11 @@ from matscan.errors import MatscanError, input_error
 #: ``--led-gradient``'s choices (matscan.reconstruct.job.LED_GRADIENTS, not imported here:
 #: it would import torch for --help)
 LED_GRADIENTS = ("auto", "fit", "none", "choose")
+#: A rig file's limits (matscan.rig's, not imported here for the same reason; a test
+#: holds them equal): positions in mm, light intensities, emission exponents.
+MAX_MM = 1e6
+MAX_INTENSITY = 1e6
+MAX_EXPONENT = 1e3
 
 
 def _maps_arg(text: str) -> Path:
@@ -48,6 +53,11 @@ def _vector(text: str, n: int, name: str) -> tuple[float, ...]:
     return values
 
 
+def _shown(bound: float) -> str:
+    """A bound as a message gives it: integers whole, other numbers short."""
+    return str(bound) if isinstance(bound, int) else f"{bound:g}"
+
+
 def _number(kind: type, low: float | None = None, high: float | None = None, low_open: bool = False):
     """An argparse type: a finite int or float within [low, high] (low excluded if ``low_open``)."""
 
@@ -59,9 +69,9 @@ def _number(kind: type, low: float | None = None, high: float | None = None, low
         if not math.isfinite(value):
             raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
         if low is not None and (value <= low if low_open else value < low):
-            raise argparse.ArgumentTypeError(f"{text} must be {'above' if low_open else 'at least'} {low:g}")
+            raise argparse.ArgumentTypeError(f"{text} must be {'above' if low_open else 'at least'} {_shown(low)}")
         if high is not None and value > high:
-            raise argparse.ArgumentTypeError(f"{text} must be at most {high:g}")
+            raise argparse.ArgumentTypeError(f"{text} must be at most {_shown(high)}")
         return value
 
     return parse
@@ -72,6 +82,12 @@ non_negative_int = _number(int, 0)
 positive_float = _number(float, 0.0, low_open=True)
 non_negative_float = _number(float, 0.0)
 finite_float = _number(float)
+#: A seed as torch's and NumPy's generators take it.
+seed_int = _number(int, 0, 2**63 - 1)
+#: A map or capture side in pixels: the paper's 3072² and well beyond (a 16384² capture of
+#: 24 photos is about 19 GB in 8-bit codes alone).
+MAX_SIZE = 16384
+size_int = _number(int, 1, MAX_SIZE)
 
 #: Options whose value is a comma-separated vector that may start with a minus sign
 #: (argparse would take "-50,0,150" for an option).
@@ -267,24 +283,38 @@ def cmd_calibrate(args: argparse.Namespace) -> str:
     return f"calibrate: wrote {args.out}: " + ", ".join(parts)
 
 
+#: ``evaluate``'s named map-set groups, and the most procedural materials one study makes
+SETS = ("photos", "artist")
+MAX_PROCEDURAL = 10000
+
+
+def _procedural_count(spec: str) -> int:
+    """N of ``procedural:N``, checked."""
+    try:
+        count = int(spec.split(":", 1)[1])
+    except ValueError:
+        raise MatscanError(f"{spec}: write procedural:N with N a number of materials") from None
+    if not 1 <= count <= MAX_PROCEDURAL:
+        raise MatscanError(f"{spec}: write procedural:N with N from 1 to {MAX_PROCEDURAL}")
+    return count
+
+
 def cmd_evaluate(args: argparse.Namespace) -> str:
     from matscan.evaluate import evaluate_to_folder
     from matscan.materials.artist import ARTIST_NAMES, artist_material
     from matscan.materials.library import read_any
     from matscan.materials.photos import photo_material
     from matscan.materials.procedural import random_material
+    from matscan.outputs import check_destination
 
+    counts = {spec: _procedural_count(spec) for spec in args.mapsets if spec.startswith("procedural:")}
+    inputs = [_maps_arg(spec) for spec in args.mapsets if spec not in counts and spec not in SETS]
+    # the output first, before any material is made (evaluate_to_folder checks it again, locked)
+    check_destination(args.out, inputs, "folder", args.overwrite, args.overwrite_any, command="evaluate")
     materials = []
-    inputs = []
     for spec in args.mapsets:
-        if spec.startswith("procedural:"):
-            try:
-                count = int(spec.split(":", 1)[1])
-            except ValueError:
-                raise MatscanError(f"{spec}: write procedural:N with N a number of materials") from None
-            if count < 1:
-                raise MatscanError(f"{spec}: write procedural:N with N at least 1")
-            for i in range(count):  # seeds above 2^41: never drawn in training (seeds below 2^40)
+        if spec in counts:
+            for i in range(counts[spec]):  # seeds above 2^41: never drawn in training (seeds below 2^40)
                 family, maps = random_material(args.size, 2**41 + i)
                 materials.append((f"procedural-{i:03d}-{family}", maps))
         elif spec == "photos":
@@ -294,8 +324,7 @@ def cmd_evaluate(args: argparse.Namespace) -> str:
         else:
             from matscan.capture.virtual import resize_maps
 
-            inputs.append(_maps_arg(spec))
-            maps = read_any(inputs[-1])
+            maps = read_any(_maps_arg(spec))
             materials.append((Path(spec).name, resize_maps(maps, args.size) if maps.size[0] != args.size else maps))
     lights = [s.strip() for s in args.lights.split(",")]
     methods = [m.strip() for m in args.methods.split(",")]
@@ -326,6 +355,8 @@ def cmd_render(args: argparse.Namespace) -> str:
     pos = _vector(args.light, 3, "--light")
     if pos[2] <= 0:
         raise MatscanError(f"--light: z = {pos[2]:g} is not above the sample plane (z > 0)")
+    if max(abs(v) for v in pos) > MAX_MM:
+        raise MatscanError(f"--light: {args.light!r} lies farther than {MAX_MM:g} mm (a rig file's limit)")
     maps_path = _maps_arg(args.maps)
     inputs = [maps_path] + ([Path(args.rig)] if args.rig.endswith(".json") else [])
     with claim_output(out, "render", inputs, kind="file", overwrite=args.overwrite):
@@ -391,7 +422,7 @@ def _sheet(args: argparse.Namespace, source: Path) -> str:
         tiles += map_tiles(read_mapset(_maps_arg(args.folder)).present())
     if args.maps:
         tiles += map_tiles(read_mapset(_maps_arg(args.maps)).present())
-    columns = args.columns or (8 if len(tiles) > 16 else None)
+    columns = min(args.columns, len(tiles)) if args.columns else (8 if len(tiles) > 16 else None)
     save_sheet(args.out, contact_sheet(tiles, columns=columns))
     return f"sheet: wrote {args.out} ({len(tiles)} tiles)"
 
@@ -860,7 +891,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="CAPTURE", help="capture folder to write")
     p.add_argument("--rig", default="dome24", help="built-in rig name or rig .json file (default dome24)")
     p.add_argument("--lights", default=None, help="named subset (24, 6, …) or indices like 0,4,8 (default all)")
-    p.add_argument("--size", type=positive_int, default=None, help="resample maps to SIZE×SIZE pixels first")
+    p.add_argument("--size", type=size_int, default=None, help="resample maps to SIZE×SIZE pixels first")
     p.add_argument(
         "--noise",
         type=non_negative_float,
@@ -875,7 +906,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="electrons at full scale, sets shot noise (default 20000)",
     )
     p.add_argument(
-        "--exposure", type=positive_float, default=1.0, help="radiance multiplier before the sensor (default 1)"
+        "--exposure",
+        type=_number(float, 0.0, 1e6, low_open=True),
+        default=1.0,
+        help="radiance multiplier before the sensor (default 1)",
     )
     p.add_argument("--encoding", choices=["srgb", "linear"], default="srgb", help="file encoding (default srgb)")
     p.add_argument(
@@ -885,7 +919,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="8/16-bit PNG, or 32 = float EXR (default 8 for srgb, 32 for linear)",
     )
-    p.add_argument("--seed", type=non_negative_int, default=0, help="noise seed (default 0)")
+    p.add_argument("--seed", type=seed_int, default=0, help="noise seed (default 0)")
     _overwrite_folder(p)
     p.set_defaults(func=cmd_simulate)
 
@@ -1055,7 +1089,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--encodings", default="srgb8,linear16", help="capture encodings: srgb8, linear16")
     p.add_argument(
         "--size",
-        type=_number(int, 8),
+        type=_number(int, 8, MAX_SIZE),
         default=256,
         help="material size in pixels, covering the rig field (default 256: 0.47 mm a pixel on dome24, the coarse end "
         "of the scales the networks are trained on)",
@@ -1069,9 +1103,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="IMAGE", help=".png (sRGB 8-bit) or .exr (linear float)")
     p.add_argument("--light", required=True, metavar="X,Y,Z", help="light position in mm (sample frame)")
     p.add_argument("--rig", default="dome24", help="rig giving camera, field and reference distance")
-    p.add_argument("--intensity", type=non_negative_float, default=1.0, help="light intensity (default 1)")
     p.add_argument(
-        "--exponent", type=non_negative_float, default=0.0, help="emission exponent m (default 0, isotropic)"
+        "--intensity", type=_number(float, 0.0, MAX_INTENSITY), default=1.0, help="light intensity (default 1)"
+    )
+    p.add_argument(
+        "--exponent",
+        type=_number(float, 0.0, MAX_EXPONENT),
+        default=0.0,
+        help="emission exponent m (default 0, isotropic)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing image")
     p.set_defaults(func=cmd_render)
@@ -1079,8 +1118,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("synth", help="write procedural materials, their captures and a contact sheet")
     p.add_argument("--out", required=True, help="folder to write")
     p.add_argument("--count", type=positive_int, required=True, help="how many materials")
-    p.add_argument("--size", type=_number(int, 8), default=256, help="map size in pixels (default 256)")
-    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--size", type=_number(int, 8, MAX_SIZE), default=256, help="map size in pixels (default 256)")
+    p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--family", default=None, help="one family only (default: drawn by the prior's weights)")
     p.add_argument("--rig", default="dome24")
     p.add_argument("--lights", default=None, help="subset of lights to photograph (default all)")
@@ -1117,7 +1156,7 @@ def build_parser() -> argparse.ArgumentParser:
         "docs/results.md 'Which lights' measures what the default costs on other subsets)",
     )
     p.add_argument("--workers", type=non_negative_int, default=None, help="data worker processes")
-    p.add_argument("--seed", type=non_negative_int, default=None)
+    p.add_argument("--seed", type=seed_int, default=None)
     p.add_argument("--val-every", dest="val_every", type=non_negative_int, default=None)
     p.add_argument("--val-count", dest="val_count", type=positive_int, default=None)
     p.add_argument(
@@ -1319,7 +1358,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="largest fraction of saturated pixels in an LED photo (default 0.001)",
     )
     p.add_argument("--retakes", type=non_negative_int, default=2, help="retakes of a frame that fails its checks")
-    p.add_argument("--seed", type=non_negative_int, default=0, help="noise seed of the virtual camera (default 0)")
+    p.add_argument("--seed", type=seed_int, default=0, help="noise seed of the virtual camera (default 0)")
     p.add_argument("--aperture", default=None, help="gphoto2: the aperture as the camera lists it (for example 8)")
     p.add_argument("--iso", default=None, help="gphoto2: the ISO as the camera lists it (for example 100)")
     p.add_argument("--jpeg", action="store_true", help="gphoto2: JPEG instead of RAW")
@@ -1365,7 +1404,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=positive_int, default=4, help="samples per step (default 4)")
     p.add_argument("--max-photos", dest="max_photos", type=positive_int, default=12, help="most photos a sample")
     p.add_argument("--lr", type=positive_float, default=3e-4, help="Adam's learning rate (default 3e-4)")
-    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument("--seed", type=seed_int, default=0)
     p.add_argument("--prior", default="v2", help="procedural material prior, as for train (default v2)")
     p.add_argument(
         "--library",
@@ -1496,7 +1535,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
+    """A message on one line, its control characters (a NUL in a file name, say) shown
+    escaped rather than sent to the terminal."""
+    line = " ".join(str(text).split())
+    return "".join(c if c.isprintable() else ascii(c)[1:-1] for c in line)
 
 
 def _terminate(signum: int, frame: object) -> None:
@@ -1535,6 +1577,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         print(f"matscan: interrupted; {str(exc) or 'nothing was written'}", file=sys.stderr)
         return 130
+    except (MemoryError, RuntimeError) as exc:  # the allocators' "out of memory", nothing else
+        text = str(exc)
+        if not isinstance(exc, MemoryError) and "allocate" not in text:
+            raise
+        print(
+            "matscan: error: not enough memory for this work on this machine "
+            f"({_one_line(text)[:120] or type(exc).__name__}); nothing was written. Try smaller images, "
+            "fewer lights, or a smaller --tile",
+            file=sys.stderr,
+        )
+        return 2
     finally:
         signal.signal(signal.SIGTERM, previous)
     return code

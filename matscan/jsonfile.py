@@ -205,6 +205,12 @@ def read_json(path: str | Path, what: str | None = None) -> Any:
     path = Path(path)
     name = _printable(what if what is not None else str(path))
     try:
+        special = path.exists() and not path.is_file()  # a folder, or a pipe that would block the read
+    except ValueError:  # a path with a NUL character
+        raise MatscanError(f"{name}: not a usable file name") from None
+    if special:
+        raise MatscanError(f"{name}: not a regular file")
+    try:
         with open(path, "rb") as f:
             raw = f.read(MAX_BYTES + 1)
     except FileNotFoundError:

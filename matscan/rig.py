@@ -161,6 +161,8 @@ class Rig:
             return tuple(range(len(self.lights)))
         if isinstance(spec, str):
             spec = spec.strip()
+            if spec and not spec.replace(",", "").strip():
+                raise MatscanError(f"lights: {spec!r} names no light; give indices like 0,4,8 or a subset's name")
             if spec in self.subsets:
                 return tuple(self.subsets[spec])
             names = ", ".join(self.subsets) or "none"

@@ -276,7 +276,16 @@ def test_unwritable_and_full_file_systems_are_refused_before_the_work(capture, t
         (["simulate", "@sample", "--out", "c", "--noise", "nan"], "not a finite number"),
         (["reconstruct", "@sample", "--out", "o", "--steps", "-1"], "must be at least 1"),
         (["evaluate", "photos", "--out", "e", "--size", "0"], "must be at least 8"),
-        (["evaluate", "procedural:0", "--out", "e"], "procedural:N with N at least 1"),
+        (["evaluate", "procedural:0", "--out", "e"], "procedural:N with N from 1 to 10000"),
+        (["evaluate", "procedural:99999999999999999999", "--out", "e"], "procedural:N with N from 1 to 10000"),
+        (["simulate", "@sample", "--out", "c", "--lights", ","], "',' names no light"),
+        (["synth", "--out", "s", "--count", "1", "--size", "16", "--lights", ", ,"], "', ,' names no light"),
+        (["simulate", "@sample", "--out", "c", "--exposure", "1e308"], "must be at most 1e+06"),
+        (["simulate", "@sample", "--out", "c", "--seed", "9" * 23], "must be at most 9223372036854775807"),
+        (["simulate", "@sample", "--out", "c", "--size", "100000"], "must be at most 16384"),
+        (["render", "@sample", "--out", "r.png", "--light", "0,0,100", "--exponent", "1e308"], "at most 1000"),
+        (["render", "@sample", "--out", "r.png", "--light", "0,0,100", "--intensity", "1e308"], "at most 1e+06"),
+        (["render", "@sample", "--out", "r.png", "--light", "0,0,1e308"], "farther than 1e+06 mm"),
         (["reconstruct", "@sample", "--out", "o", "--emissive", "--refine", "off"], "drop --emissive or --refine off"),
         (["calibrate", "--chart", "c.png", "--out", "c.json", "--corners", "nan,0,1,0,1,1,0,1"], "not finite"),
     ],
@@ -652,3 +661,65 @@ def test_a_path_that_is_not_utf8_is_refused_before_the_work(capture, capsys, tmp
     argv = ["reconstruct", str(odd), "--out", str(tmp_path / "o"), "--model", "none"]
     assert_refused(argv, capsys, tmp_path, "cap\\xff: the path is not valid UTF-8")
     assert not (tmp_path / "o").exists()
+
+
+def test_evaluate_checks_its_output_before_making_any_material(tmp_path, capsys, monkeypatch):
+    import matscan.materials.procedural as procedural
+
+    def never(*args, **kwargs):
+        raise AssertionError("a material was made before the output was checked")
+
+    monkeypatch.setattr(procedural, "random_material", never)
+    (tmp_path / "e").mkdir()
+    (tmp_path / "e" / "notes.txt").write_text("mine")
+    assert_refused(["evaluate", "procedural:300", "--out", str(tmp_path / "e")], capsys, tmp_path, "not empty")
+
+
+def test_running_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
+    import matscan.cli as cli
+
+    def hungry(args):
+        raise RuntimeError(
+            "[enforce fail at alloc_cpu.cpp:117] DefaultCPUAllocator: not enough memory: you tried "
+            "to allocate 120000000000 bytes."
+        )
+
+    monkeypatch.setattr(cli, "cmd_render", hungry)
+    code, err = run_cli(["render", "@sample", "--out", str(tmp_path / "r.png"), "--light", "0,0,100"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "not enough memory" in err
+    monkeypatch.setattr(cli, "cmd_render", lambda args: (_ for _ in ()).throw(RuntimeError("a bug")))
+    with pytest.raises(RuntimeError, match="a bug"):  # other errors are not dressed up as memory
+        main(["render", "@sample", "--out", str(tmp_path / "r.png"), "--light", "0,0,100"])
+
+
+def test_the_cli_keeps_the_rig_files_limits():
+    import matscan.cli as cli
+    import matscan.rig as rig
+
+    assert (cli.MAX_MM, cli.MAX_INTENSITY, cli.MAX_EXPONENT) == (rig.MAX_MM, rig.MAX_INTENSITY, rig.MAX_EXPONENT)
+
+
+def test_a_sheet_has_no_more_columns_than_tiles(tmp_path, capsys):
+    from PIL import Image
+
+    assert main(["sheet", "@sample", "--out", str(tmp_path / "a.png"), "--columns", "24"]) == 0
+    assert main(["sheet", "@sample", "--out", str(tmp_path / "b.png"), "--columns", "100000"]) == 0
+    assert Image.open(tmp_path / "b.png").size == Image.open(tmp_path / "a.png").size
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+def test_a_pipe_named_as_a_json_file_is_refused_not_read(tmp_path):
+    from matscan.jsonfile import read_json
+
+    os.mkfifo(tmp_path / "rig.json")  # reading it would wait for a writer for ever
+    with pytest.raises(MatscanError, match=r"rig\.json: not a regular file"):
+        read_json(tmp_path / "rig.json")
+    with pytest.raises(MatscanError, match=f"{tmp_path}: not a regular file"):
+        read_json(tmp_path)
+
+
+def test_control_characters_in_a_message_are_shown_escaped(tmp_path, capsys):
+    lp = tmp_path / "lights.lp"
+    lp.write_text("1\na\x07.png 0 0 1\n")
+    code, err = run_cli(["import-rti", str(tmp_path), "--out", str(tmp_path.parent / "imported")], capsys)
+    assert code == 2 and "\x07" not in err and "\\x07" in err

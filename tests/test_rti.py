@@ -134,6 +134,40 @@ def test_cli_rig_to_lp_of_a_capture_names_its_photos(tmp_path):
     np.testing.assert_allclose(np.array(back.directions), np.array(given.directions), atol=1e-8)
 
 
+def _three_photos(folder: Path, names=("image01.jpg", "image02.jpg", "image03.jpg")) -> None:
+    folder.mkdir()
+    directions = ("0 0 1", "0.6 0 0.8", "0 0.6 0.8")
+    for name, source in zip(names, ("image01.jpg", "image02.jpg", "image03.jpg"), strict=True):
+        (folder / name).write_bytes((ICON / source).read_bytes())
+    lines = [f"{n} {d}" for n, d in zip(names, directions, strict=True)]
+    (folder / "lights.lp").write_text("3\n" + "\n".join(lines) + "\n")
+
+
+def test_import_rti_writes_only_what_a_capture_can_hold(tmp_path, capsys):
+    """What the capture's own checks would refuse is refused before anything is written:
+    a field wider than a rig file allows, a photo name with a control character."""
+    _three_photos(tmp_path / "rti")
+    argv = ["import-rti", str(tmp_path / "rti"), "--out", str(tmp_path / "cap")]
+    assert main([*argv, "--field-width-mm", "2e6"]) == 2
+    assert "must be a number of mm above 0 and at most 1e+06" in capsys.readouterr().err
+    _three_photos(tmp_path / "odd", names=("a\x07.jpg", "b.jpg", "c.jpg"))
+    assert main(["import-rti", str(tmp_path / "odd"), "--out", str(tmp_path / "cap")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "lights.lp: 'a\\x07.jpg'" in err and "not a usable file name" in err and "\n" not in err
+    assert not (tmp_path / "cap").exists()
+
+
+def test_rig_from_lp_writes_rigs_that_load(tmp_path, capsys):
+    _three_photos(tmp_path / "rti")
+    odd = tmp_path / "a\tb.lp"
+    odd.write_text((tmp_path / "rti" / "lights.lp").read_text())
+    assert main(["rig", "from-lp", str(odd), "--out", str(tmp_path / "rig.json")]) == 0
+    assert load_rig(tmp_path / "rig.json").name == "a_b"  # the control character made printable
+    argv = ["rig", "from-lp", str(odd), "--out", str(tmp_path / "big.json"), "--field-mm", "1e308,1e308"]
+    assert main(argv) == 2
+    assert "at most 1e+06 mm" in capsys.readouterr().err and not (tmp_path / "big.json").exists()
+
+
 def test_hsh_fits_its_own_span_exactly_and_matches_numpy():
     g = torch.Generator().manual_seed(1)
     k = 30
