@@ -155,9 +155,14 @@ def batch(
     paths = expand_captures(captures)
     names = output_names(paths)
     out = Path(out)
-    from matscan.outputs import check_place
+    from matscan.outputs import check_utf8
 
-    check_place(out, paths)  # not an input capture, nor in or around one; a usable path
+    check_utf8(out, *paths)  # the manifest and catalogue record them
+    where = out.resolve()
+    for path in paths:  # a batch folder resumes, never replaces: only in a capture is it refused
+        if where == path.resolve() or path.resolve() in where.parents:
+            how = "is" if where == path.resolve() else "lies inside"
+            raise input_error(out, f"{how} the input capture {path}; matscan never writes into its inputs")
     settings = json_safe(asdict(cfg))
     created = not out.exists()
     with output_lock(out):

@@ -82,8 +82,9 @@ non_negative_int = _number(int, 0)
 positive_float = _number(float, 0.0, low_open=True)
 non_negative_float = _number(float, 0.0)
 finite_float = _number(float)
-#: A seed as torch's and NumPy's generators take it.
-seed_int = _number(int, 0, 2**63 - 1)
+#: A seed: to 2^31 − 1, so the seeds the commands derive from it (up to about 10^7 times
+#: it) stay within what torch's and NumPy's generators take (2^63 − 1).
+seed_int = _number(int, 0, 2**31 - 1)
 #: A map or capture side in pixels: the paper's 3072² and well beyond (a 16384² capture of
 #: 24 photos is about 19 GB in 8-bit codes alone).
 MAX_SIZE = 16384

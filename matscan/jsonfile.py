@@ -208,6 +208,8 @@ def read_json(path: str | Path, what: str | None = None) -> Any:
         special = path.exists() and not path.is_file()  # a folder, or a pipe that would block the read
     except ValueError:  # a path with a NUL character
         raise MatscanError(f"{name}: not a usable file name") from None
+    except OSError as exc:  # a name too long, a folder that cannot be entered
+        raise MatscanError(f"{name}: cannot read ({exc.strerror or type(exc).__name__})") from None
     if special:
         raise MatscanError(f"{name}: not a regular file")
     try:

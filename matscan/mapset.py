@@ -218,34 +218,26 @@ def _read_map(path: Path, name: str, meta: dict[str, Any]) -> Tensor:
 
 #: The largest height magnitude a map set may record (1 km; real ones are millimetres).
 MAX_HEIGHT_MM = 1e6
-#: The largest value of an emissive map or a normal map's component in a float file
-#: (emission in photo units, 1 = the exposure's white).
+#: The largest magnitude a float file's map may hold (other than a height, in mm): far
+#: beyond any meaningful albedo, F0, roughness or emission, short of overflowing a render.
 MAX_FLOAT_VALUE = 1e6
-#: How far outside [0, 1] a float file's fraction (albedo, F0, roughness, metalness,
-#: coverage) may stray from filtering or rounding; such values are clamped, others refused.
-FRACTION_SLACK = 0.01
 
 
 def check_float_map(t: Tensor, path: Path, name: str) -> Tensor:
-    """A float file's ``name`` map (any layout) with its values checked: finite;
-    fractions in [0, 1] (within ``FRACTION_SLACK``, then clamped), heights within
-    ``MAX_HEIGHT_MM``, the rest within ``MAX_FLOAT_VALUE``. Errors name the file and the
-    values found."""
+    """A float file's ``name`` map (any layout) with its values checked: finite, and
+    within ``MAX_HEIGHT_MM`` (heights) or ``MAX_FLOAT_VALUE`` (the rest), so a value in
+    the wrong units or a blown-up export is refused naming the file rather than failing
+    a render. Values are kept as they are."""
     if not torch.isfinite(t).all():
         raise input_error(path, "holds NaN or infinite values")
+    limit = MAX_HEIGHT_MM if name == "height" else MAX_FLOAT_VALUE
     lo, hi = float(t.min()), float(t.max())
-    if name == "height":
-        low, high = -MAX_HEIGHT_MM, MAX_HEIGHT_MM
-    elif name in ("emissive", "normal"):
-        low, high = (0.0 if name == "emissive" else -MAX_FLOAT_VALUE), MAX_FLOAT_VALUE
-    else:
-        low, high = -FRACTION_SLACK, 1 + FRACTION_SLACK
-    if lo < low or hi > high:
+    if max(-lo, hi) > limit:
         unit = " mm" if name == "height" else ""
         raise input_error(
-            path, f"holds values from {lo:.4g} to {hi:.4g}{unit}; a {name} map's lie from {low:g} to {high:g}{unit}"
+            path, f"holds values from {lo:.4g} to {hi:.4g}{unit}; a {name} map's lie within ±{limit:g}{unit}"
         )
-    return t.clamp(0, 1) if high == 1 + FRACTION_SLACK else t
+    return t
 
 
 _FILE_KEYS = {"file": True, "bits": True}

@@ -265,6 +265,19 @@ def _name_max(folder: Path) -> int:
         return 255
 
 
+def check_utf8(*paths: str | Path) -> None:
+    """Refuse a path that is not valid UTF-8 (a name from another system's encoding):
+    matscan records paths in JSON and HTML files, which could not hold it."""
+    for item in map(str, paths):
+        try:
+            item.encode("utf-8")
+        except UnicodeEncodeError:
+            name = os.fsencode(item).decode("utf-8", errors="backslashreplace")
+            raise MatscanError(
+                f"{name}: the path is not valid UTF-8, and matscan records paths in JSON and HTML files; rename it"
+            ) from None
+
+
 def check_place(out: str | Path, inputs: Iterable[str | Path] = (), flag: str = "--out") -> tuple[Path, Path]:
     """The checks of where an output lies, whatever it replaces (:func:`check_destination`
     adds those; ``matscan capture``, which resumes its own folder, makes only these and
@@ -275,14 +288,7 @@ def check_place(out: str | Path, inputs: Iterable[str | Path] = (), flag: str = 
     if not text or "\x00" in text:
         raise MatscanError(f"{flag}: {text!r} is not a usable path")
     inputs = list(inputs)
-    for item in (text, *map(str, inputs)):
-        try:
-            item.encode("utf-8")
-        except UnicodeEncodeError:
-            name = os.fsencode(item).decode("utf-8", errors="backslashreplace")
-            raise MatscanError(
-                f"{name}: the path is not valid UTF-8, and matscan records paths in JSON and HTML files; rename it"
-            ) from None
+    check_utf8(text, *inputs)
     given = Path(text)
     if given.is_symlink():
         if not given.exists():

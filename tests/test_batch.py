@@ -59,7 +59,7 @@ def test_inputs_and_cluster_shape(captures, tmp_path):
         batch([str(captures / "cork")], tmp_path / "out", workers=2, scheduler="tcp://127.0.0.1:1")
     with pytest.raises(MatscanError, match="no such weights file"):
         batch([str(captures / "cork")], tmp_path / "out", ReconstructConfig(model=str(tmp_path / "nope.safetensors")))
-    with pytest.raises(MatscanError, match=f"lies inside the input {captures / 'cork'}"):
+    with pytest.raises(MatscanError, match=f"lies inside the input capture {captures / 'cork'}"):
         batch([str(captures / "cork")], captures / "cork" / "batch")
     assert not (tmp_path / "out").exists() and not (captures / "cork" / "batch").exists()
     with pytest.raises(MatscanError, match="cannot reach"):  # a batch that cannot start leaves nothing
@@ -243,3 +243,17 @@ def test_a_damaged_manifest_is_one_line_naming_it(tmp_path, captures_value, word
 def test_a_capture_named_as_the_batchs_own_files_gets_another_name(tmp_path):
     names = output_names([tmp_path / "thumbs", tmp_path / "a" / "thumbs", tmp_path / ".hidden", tmp_path / "cork"])
     assert names == ["thumbs-2", "thumbs-3", "hidden", "cork"]
+
+
+@pytest.mark.skipif(sys.platform == "darwin", reason="macOS file systems refuse names that are not UTF-8")
+def test_a_capture_path_that_is_not_utf8_is_refused_before_any_manifest(captures, tmp_path):
+    import os
+    import shutil
+
+    from matscan.batch import batch
+
+    odd = Path(os.fsdecode(bytes(tmp_path) + b"/cork\xff"))
+    shutil.copytree(captures / "cork", odd)
+    with pytest.raises(MatscanError, match=r"cork\\xff: the path is not valid UTF-8"):
+        batch([str(odd)], tmp_path / "out")
+    assert not (tmp_path / "out").exists()

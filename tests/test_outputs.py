@@ -281,7 +281,8 @@ def test_unwritable_and_full_file_systems_are_refused_before_the_work(capture, t
         (["simulate", "@sample", "--out", "c", "--lights", ","], "',' names no light"),
         (["synth", "--out", "s", "--count", "1", "--size", "16", "--lights", ", ,"], "', ,' names no light"),
         (["simulate", "@sample", "--out", "c", "--exposure", "1e308"], "must be at most 1e+06"),
-        (["simulate", "@sample", "--out", "c", "--seed", "9" * 23], "must be at most 9223372036854775807"),
+        (["simulate", "@sample", "--out", "c", "--seed", "9" * 23], "must be at most 2147483647"),
+        (["synth", "--out", "s", "--count", "1", "--size", "8", "--seed", str(2**62)], "must be at most 2147483647"),
         (["simulate", "@sample", "--out", "c", "--size", "100000"], "must be at most 16384"),
         (["render", "@sample", "--out", "r.png", "--light", "0,0,100", "--exponent", "1e308"], "at most 1000"),
         (["render", "@sample", "--out", "r.png", "--light", "0,0,100", "--intensity", "1e308"], "at most 1e+06"),
@@ -723,3 +724,10 @@ def test_control_characters_in_a_message_are_shown_escaped(tmp_path, capsys):
     lp.write_text("1\na\x07.png 0 0 1\n")
     code, err = run_cli(["import-rti", str(tmp_path), "--out", str(tmp_path.parent / "imported")], capsys)
     assert code == 2 and "\x07" not in err and "\\x07" in err
+
+
+@pytest.mark.parametrize("family", [None, "leather"])
+def test_the_largest_seed_is_one_every_command_can_use(tmp_path, capsys, family):
+    # synth derives seed × 100003 + i, training (seed × 1000003 + i) × 7 + 3: within 2^63 − 1
+    argv = ["synth", "--out", str(tmp_path / "s"), "--count", "2", "--size", "8", "--seed", str(2**31 - 1)]
+    assert main([*argv, *(["--family", family] if family else [])]) == 0, capsys.readouterr().err
