@@ -13,7 +13,9 @@ or computes anything:
 - a folder holding a capture (a ``capture.json`` in it or below it) is replaced only by
   the command that wrote it (its ``matscan.json`` says which: ``simulate`` over a
   simulated capture, ``import-rti`` over an imported one, ``synth`` over a synth set),
+  and only when that record lists every capture there (:func:`captures_not_its_own`),
   whatever the flags: ``--overwrite`` never turns a capture into another output;
+- a path that is not valid UTF-8 is refused (:func:`check_utf8`): records hold paths;
 - an existing folder is replaced only with ``--overwrite``, and only when it holds
   nothing but a previous matscan output (every file listed in its ``matscan.json``,
   :func:`foreign_entries`), unless ``--overwrite-any`` is given too; an existing
@@ -22,7 +24,8 @@ or computes anything:
   enough for the file system with room for a temporary name, and (once the input
   size is known, :meth:`OutputClaim.check_space`) the free space plausible;
 - the output is locked for the rest of the command, so a second writer fails at
-  once, and stale temporaries of killed writers are removed.
+  once, and stale temporaries of killed writers are removed; folders made for an
+  output that the command then fails to write are removed again.
 
 Then :meth:`OutputClaim.folder` / :meth:`OutputClaim.file` write it atomically
 (:mod:`matscan.atomic`). Every refusal is one :class:`MatscanError` line.
