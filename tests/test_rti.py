@@ -157,6 +157,26 @@ def test_import_rti_writes_only_what_a_capture_can_hold(tmp_path, capsys):
     assert not (tmp_path / "cap").exists()
 
 
+def test_a_light_file_in_the_windows_code_page_finds_its_photos(tmp_path):
+    """An .lp written by an RTI tool on Windows holds accented photo names in Windows-1252;
+    the photos, copied to this system, have them in UTF-8."""
+    _three_photos(tmp_path / "rti", names=("étude01.jpg", "étude02.jpg", "étude03.jpg"))
+    lp = tmp_path / "rti" / "lights.lp"
+    lp.write_bytes(lp.read_text(encoding="utf-8").encode("cp1252"))
+    lights = read_lp(lp)
+    assert lights.files == ("étude01.jpg", "étude02.jpg", "étude03.jpg")
+    assert "read as Windows-1252" in lights.warnings[0]
+    out, warnings = import_rti(tmp_path / "rti", tmp_path / "cap")
+    assert len(load_capture(out).files) == 3 and any("Windows-1252" in w for w in warnings)
+
+
+def test_a_light_file_with_a_byte_order_mark_reads(tmp_path):
+    _three_photos(tmp_path / "rti")
+    lp = tmp_path / "rti" / "lights.lp"
+    lp.write_bytes(b"\xef\xbb\xbf" + lp.read_bytes())
+    assert read_lp(lp).files == ("image01.jpg", "image02.jpg", "image03.jpg") and not read_lp(lp).warnings
+
+
 def test_rig_from_lp_writes_rigs_that_load(tmp_path, capsys):
     _three_photos(tmp_path / "rti")
     odd = tmp_path / "a\tb.lp"

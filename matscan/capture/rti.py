@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import shutil
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path, PureWindowsPath
 from typing import Any
 
@@ -121,10 +121,15 @@ def read_lp(path: str | Path, y: str = LP_Y_DEFAULT) -> LightFile:
     if not path.is_file():
         raise input_error(path, "no such light file")
     try:
-        text = path.read_text(encoding="utf-8-sig", errors="replace")
+        raw = path.read_bytes()
     except OSError as exc:
         raise input_error(path, f"cannot read it ({exc.strerror})") from None
-    return parse_lp(text, str(path), y)
+    try:
+        return parse_lp(raw.decode("utf-8-sig"), str(path), y)
+    except UnicodeDecodeError:  # RTI tools on Windows write the system's code page
+        lights = parse_lp(raw.decode("cp1252", errors="replace"), str(path), y)
+        note = f"{path}: not UTF-8 text; its photo names were read as Windows-1252"
+        return replace(lights, warnings=(note, *lights.warnings))
 
 
 def rig_from_lp(
