@@ -199,9 +199,13 @@ def _rti_photos_beside(path: Path) -> list[str]:
     try:
         if path.stat().st_size > 2**20:
             return []
-        lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
+        raw = path.read_bytes()
     except OSError:
         return []
+    try:
+        lines = raw.decode("utf-8-sig").splitlines()
+    except UnicodeDecodeError:  # as matscan.capture.rti.read_lp reads it
+        lines = raw.decode("cp1252", errors="replace").splitlines()
     found = []
     for line in lines:
         parts = line.split()

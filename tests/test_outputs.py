@@ -609,6 +609,16 @@ def test_an_rti_light_file_naming_windows_paths_is_never_replaced(tmp_path, caps
     assert_refused(argv, capsys, rti, "is the light file of the RTI photos beside it (a.png")
 
 
+def test_an_rti_light_file_in_the_windows_code_page_is_never_replaced(tmp_path, capsys):
+    rti = tmp_path / "rti"
+    rti.mkdir()
+    for name in ("étude-a.png", "étude-b.png"):
+        (rti / name).write_bytes(b"photo")
+    (rti / "dirs.lp").write_bytes("2\nétude-a.png 0.1 0.2 0.97\nétude-b.png -0.3 0.1 0.95\n".encode("cp1252"))
+    argv = ["rig", "to-lp", "dome24", "--out", str(rti / "dirs.lp"), "--overwrite"]
+    assert_refused(argv, capsys, rti, "is the light file of the RTI photos beside it (étude-a.png")
+
+
 def test_import_rti_counts_its_light_file_as_an_input(tmp_path, capsys):
     rti, lights = tmp_path / "rti", tmp_path / "lights"
     rti.mkdir()
