@@ -241,17 +241,25 @@ def test_checks_dark_and_moved_frames(tmp_path):
         def radiance(self, state):
             return torch.zeros(3, *self.maps.size) if state.led == 8 else super().radiance(state)
 
-    with pytest.raises(MatscanError, match=r"led_08: it is as dark as the dark frame: did the LED light\?; tried 3"):
+    # dark at 0.01 s and at 16 times that: the LED did not light
+    with pytest.raises(MatscanError, match=r"led_08: it is as dark as the dark frame, at 0.16 s as well: did the LED"):
         acquire(tmp_path / "a", RIG, DeadLed(small_sample(), RIG, leds), leds, SIX)
     assert (tmp_path / "a" / "led_04.png").exists() and not (tmp_path / "a" / "led_08.png").exists()
 
     class Knocked(VirtualCamera):
-        def radiance(self, state):
-            img = super().radiance(state)
-            return torch.roll(img, 5, dims=2) if state.led is not None and state.led >= 12 else img
+        """Knocked 5 px just before LED 12's photo; it stays there."""
 
-    with pytest.raises(MatscanError, match=r"led_12: the sample moved [4-6]\.\d px since the last LED frame"):
-        acquire(tmp_path / "b", RIG, Knocked(small_sample(), RIG, leds), leds, SIX)
+        knocked = False
+
+        def radiance(self, state):
+            self.knocked = self.knocked or state.led == 12
+            img = super().radiance(state)
+            return torch.roll(img, 5, dims=2) if self.knocked else img
+
+    camera = Knocked(small_sample(), RIG, leds)
+    with pytest.raises(MatscanError, match=r"led_12: the sample moved [4-6]\.\d px .* that frame's LED again shows"):
+        acquire(tmp_path / "b", RIG, camera, leds, SIX)
+    assert camera.shots == 1 + 3 + 1 + 1 + 2  # dark; LEDs 0, 4, 8; LED 12; LED 8 again; LED 12 retaken twice
 
     with pytest.raises(MatscanError, match=r"led_00: .* of its pixels are saturated"):
         acquire(
@@ -261,6 +269,95 @@ def test_checks_dark_and_moved_frames(tmp_path):
             leds,
             AcquireConfig(lights=(0,), exposure_s=1.0, max_saturated=0.01, retakes=0),
         )
+
+
+def _journal_frames(folder: Path) -> dict[str, dict]:
+    import json
+
+    events = [json.loads(line) for line in (folder / JOURNAL).read_text().splitlines()]
+    return {e["stem"]: e for e in events if e["event"] == "frame"}
+
+
+def test_a_frame_dark_only_at_the_metered_exposure_is_kept(tmp_path):
+    """A worn metal: the top LEDs' highlights set a short exposure, at which the grazing
+    LEDs' photos are as dark as the dark frame though those LEDs lit. Such a frame is
+    kept (the LED shows at a longer exposure); before, the capture stopped there."""
+    from matscan.imagefile import read_image
+    from matscan.materials.artist import artist_material
+
+    maps = artist_material("worn-metal", 32)
+    leds = VirtualLeds()
+    record = acquire(tmp_path / "cap", RIG, VirtualCamera(maps, RIG, leds), leds, AcquireConfig())
+    assert record["complete"] and len(load_capture(tmp_path / "cap").files) == 24
+
+    def p99(image):
+        return float(np.percentile(image.pixels[..., :3].mean(axis=2), 99))
+
+    dark = p99(read_image(tmp_path / "cap" / "dark.png"))
+    led0 = p99(read_image(tmp_path / "cap" / "led_00.png"))
+    assert led0 < dark + 0.01  # the premise: as dark as the dark frame at the metered exposure ...
+    leds.led(0)
+    lit = VirtualCamera(maps, RIG, leds).shoot(0.01)  # ... while LED 0 shows at the metering's start
+    (tmp_path / "lit.png").write_bytes(lit)
+    assert p99(read_image(tmp_path / "lit.png")) > dark + 0.05
+    frames = _journal_frames(tmp_path / "cap")
+    assert frames["led_00"]["checks"]["lit_exposure_s"] == 0.01
+    assert "shift_px" not in frames["led_01"]["checks"]  # a frame this dark is no reference for movement
+
+
+def test_an_apparent_move_that_the_same_light_does_not_show_is_kept(tmp_path):
+    """A metal mesh: its relief and highlights change so much between LEDs that phase
+    correlation finds shifts of several pixels between consecutive frames of a sample
+    that never moves. The previous frame's LED shot again shows it still, so the
+    capture goes on; before, it stopped. A real 3 px knock is still caught."""
+    from matscan.materials.procedural import generate
+
+    maps = generate("mesh", 32, seed=1)
+    leds = VirtualLeds()
+    record = acquire(tmp_path / "cap", RIG, VirtualCamera(maps, RIG, leds), leds, AcquireConfig())
+    assert record["complete"] and len(load_capture(tmp_path / "cap").files) == 24
+    overruled = [
+        c for c in (f["checks"] for f in _journal_frames(tmp_path / "cap").values()) if "same_light_shift_px" in c
+    ]
+    assert overruled and all(c["shift_px"] > 1.5 and c["shift_response"] >= 0.15 for c in overruled)
+    assert all(c["same_light_shift_px"] <= 1.5 for c in overruled)
+
+    class Knocked(VirtualCamera):
+        dark_taken = knocked = False
+
+        def radiance(self, state):
+            self.dark_taken = self.dark_taken or (state.led is None and state.back is None)
+            self.knocked = self.knocked or (self.dark_taken and state.led == 12)
+            img = super().radiance(state)
+            return torch.roll(img, 3, dims=2) if self.knocked else img
+
+    with pytest.raises(MatscanError, match=r"led_12: the sample moved [2-4]\.\d px .* that frame's LED again shows"):
+        acquire(tmp_path / "knocked", RIG, Knocked(maps, RIG, leds), leds, AcquireConfig())
+
+
+def test_metering_takes_the_longest_exposure_at_which_every_led_passes():
+    """LED k saturates min(1, exposure × rate_k) of its pixels. Closed form: the
+    brightest (rate 40/s) allows at most 0.001 / 40 = 25 µs, so 10 ms halved 9 times
+    (19.5 µs). Each shot either passes an LED (once each) or fails an exposure (once
+    each), so at most 6 + 10 shots."""
+    from matscan.capture.acquire import choose_exposure
+    from matscan.imagefile import ImageData
+
+    rates = [0.05, 3.0, 0.2, 40.0, 1.0, 0.0]
+    shots = []
+
+    def shoot(k, exposure):
+        shots.append((k, exposure))
+        stored = np.zeros((100, 100, 3), np.uint8)
+        stored.reshape(-1, 3)[: round(min(1.0, exposure * rates[k]) * 10000)] = 255
+        return ImageData(stored, "int", 8)
+
+    exposure, tests = choose_exposure(shoot, range(6), AcquireConfig(start_exposure_s=0.01, max_saturated=0.001))
+    assert exposure == 0.01 / 2**9
+    assert [t["exposure_s"] for t in tests] == [0.01 / 2**n for n in range(10)]
+    assert len(shots) <= 6 + 10
+    for k, rate in enumerate(rates):  # every LED was seen within the limit at this exposure or a longer one
+        assert any(kk == k and e >= exposure and e * rate <= 0.001 for kk, e in shots)
 
 
 def test_folders_that_are_not_this_capture_are_refused(tmp_path):

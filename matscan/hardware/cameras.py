@@ -7,8 +7,9 @@ name only once they are complete and checked.
 
 * :class:`VirtualCamera` renders a map set through the rig under whatever the LED
   controller has lit, with the virtual rig's sensor model (tests, demos, training staff).
-  A frame depends only on what is lit and the exposure, so a capture that is interrupted
-  and resumed is byte for byte the one an uninterrupted run writes.
+  A frame depends only on the scene, what is lit and the exposure (its noise too), so a
+  capture that is interrupted and resumed is byte for byte the one an uninterrupted run
+  writes.
 * :class:`FolderCamera` waits for the next image file that a camera's own software
   writes into a folder (industrial cameras, phones, tethering tools). Nothing in that
   folder is ever moved or deleted.
@@ -82,9 +83,14 @@ class VirtualCamera:
             raise MatscanError("camera virtual: disconnected (a fault injected by the test)")
         self.shots += 1
         state = self.leds.state
-        key = f"{self.seed}|{state.led}|{state.back}|{state.level:.6f}|{exposure_s:.9g}|{self.sample_present}"
-        seed = int.from_bytes(hashlib.sha256(key.encode()).digest()[:8], "little") % (2**63)
         radiance = self.radiance(state) * (exposure_s / VIRTUAL_BASE_EXPOSURE)
+        # the noise follows the scene: the same scene shot again gives the same bytes (a
+        # resumed capture is the one an uninterrupted run writes), a changed one (a
+        # sample that moved) new noise, as a sensor's would be
+        key = f"{self.seed}|{state.led}|{state.back}|{state.level:.6f}|{exposure_s:.9g}|{self.sample_present}|"
+        scene = hashlib.sha256(key.encode())
+        scene.update(radiance.contiguous().numpy().tobytes())
+        seed = int.from_bytes(scene.digest()[:8], "little") % (2**63)
         photo = apply_camera(radiance, self.camera, torch.Generator().manual_seed(seed)).clamp(0, 1)
         if self.camera.encoding == "srgb":
             photo = linear_to_srgb(photo)
