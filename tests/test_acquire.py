@@ -205,6 +205,26 @@ def test_a_frame_that_never_arrives(tmp_path):
         acquire(tmp_path / "cap", RIG, camera, leds, SIX)
 
 
+def test_a_sample_moved_while_a_capture_was_interrupted_is_caught_on_resume(tmp_path):
+    """The resumed capture's first frame is checked against the last frame taken before
+    the interruption, and that frame's LED (from the journal) is the one shot again."""
+    leds = VirtualLeds()
+    with pytest.raises(MatscanError, match="disconnected"):
+        acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds, fail_after=4), leds, SIX)
+
+    class Moved(VirtualCamera):  # put back 4 px off
+        lit = []
+
+        def radiance(self, state):
+            self.lit.append(state.led)
+            return torch.roll(super().radiance(state), 4, dims=2)
+
+    camera = Moved(small_sample(), RIG, leds)
+    with pytest.raises(MatscanError, match=r"led_12: the sample moved [3-5]\.\d px .* that frame's LED again shows"):
+        acquire(tmp_path / "cap", RIG, camera, leds, SIX)
+    assert camera.lit[:2] == [12, 8]  # the new frame, then led_08's LED again
+
+
 def test_folder_camera_takes_each_new_file_and_touches_nothing(tmp_path):
     """A camera's own software saving into a folder: a thread plays that software,
     writing the virtual camera's frame for whatever is lit."""
@@ -230,8 +250,39 @@ def test_folder_camera_takes_each_new_file_and_touches_nothing(tmp_path):
     acquire(tmp_path / "cap", RIG, Software(incoming, timeout=10), leds, SIX)
     stop.set()
     assert (incoming / "old.png").read_bytes() == b"not ours"
-    assert all(p.exists() for p in written) and len(written) == 7
+    assert all(p.exists() for p in written) and len(written) == 8  # 7 frames, the end's movement check
     assert (tmp_path / "cap" / "led_00.png").read_bytes() == written[1].read_bytes()
+
+
+def test_a_folder_camera_saving_jpeg_gives_jpeg_frames(tmp_path):
+    """The frames take the suffix of the files the camera's software saves, the first
+    (the dark frame) too."""
+    import cv2
+
+    from matscan.imagefile import read_image
+
+    incoming = tmp_path / "incoming"
+    incoming.mkdir()
+    leds = VirtualLeds()
+    source = VirtualCamera(small_sample(), RIG, leds)
+
+    class Software(FolderCamera):
+        def shoot(self, exposure_s):
+            def save():
+                time.sleep(0.05)
+                png = tmp_path / "frame.png"
+                png.write_bytes(source.shoot(0.01))
+                rgb = (read_image(png).pixels * 255).round().astype(np.uint8)
+                cv2.imwrite(str(incoming / f"IMG_{len(list(incoming.iterdir())):04d}.jpg"), rgb[..., ::-1])
+
+            threading.Thread(target=save).start()
+            return super().shoot(exposure_s)
+
+    acquire(tmp_path / "cap", RIG, Software(incoming, timeout=10), leds, SIX)
+    names = sorted(p.name for p in (tmp_path / "cap").iterdir() if p.suffix in (".png", ".jpg"))
+    assert names == ["dark.jpg"] + [f"led_{k:02d}.jpg" for k in SIX.lights]
+    assert (tmp_path / "cap" / "dark.jpg").read_bytes()[:2] == b"\xff\xd8"  # JPEG bytes, named so
+    assert len(load_capture(tmp_path / "cap").files) == 6
 
 
 def test_checks_dark_and_moved_frames(tmp_path):
@@ -302,7 +353,10 @@ def test_a_frame_dark_only_at_the_metered_exposure_is_kept(tmp_path):
     assert p99(read_image(tmp_path / "lit.png")) > dark + 0.05
     frames = _journal_frames(tmp_path / "cap")
     assert frames["led_00"]["checks"]["lit_exposure_s"] == 0.01
-    assert "shift_px" not in frames["led_01"]["checks"]  # a frame this dark is no reference for movement
+    # a frame this dark is no reference for movement: the first LED frame that shows the
+    # sample is compared with none
+    shown = [f for stem, f in frames.items() if stem.startswith("led_") and "lit_p99" not in f["checks"]]
+    assert "shift_px" not in shown[0]["checks"] and all("shift_px" in f["checks"] for f in shown[1:])
 
 
 def test_an_apparent_move_that_the_same_light_does_not_show_is_kept(tmp_path):
@@ -333,6 +387,43 @@ def test_an_apparent_move_that_the_same_light_does_not_show_is_kept(tmp_path):
 
     with pytest.raises(MatscanError, match=r"led_12: the sample moved [2-4]\.\d px .* that frame's LED again shows"):
         acquire(tmp_path / "knocked", RIG, Knocked(maps, RIG, leds), leds, AcquireConfig())
+
+
+def test_a_slow_drift_is_caught_after_the_last_led_frame(tmp_path):
+    """The sample creeps 0.5 px with every photo: too little from one frame to the next
+    for the frame-to-frame check (at most 1.5 px), 3.5 px from the first LED frame to
+    the end (4 with the check shot a frame's apparent move takes). After the last LED
+    frame, the first frame's LED shot again shows it; the capture stops, keeps its
+    photos, and a rerun stops again without shooting. A still sample passes, with its
+    drift recorded."""
+    import json
+
+    class Drifting(VirtualCamera):
+        shift = -1.0
+
+        def radiance(self, state):
+            if state.led is None and state.back is None:
+                self.shift = max(self.shift, 0.0)
+            img = super().radiance(state)
+            if self.shift < 0:  # the metering's test shots: the sample has not moved yet
+                return img
+            self.shift += 0.5
+            ramp = torch.exp(-2j * torch.pi * torch.fft.fftfreq(img.shape[-1]) * self.shift)
+            return torch.fft.ifft(torch.fft.fft(img, dim=-1) * ramp, dim=-1).real.clamp_min(0)
+
+    leds = VirtualLeds()
+    camera = Drifting(small_sample(), RIG, leds)
+    with pytest.raises(MatscanError, match=r"the sample moved [3-4]\.\d px during the capture .* led_00's LED"):
+        acquire(tmp_path / "cap", RIG, camera, leds, SIX)
+    assert len(load_capture(tmp_path / "cap").files) == 6  # every frame passed its checks, and is kept
+    assert json.loads((tmp_path / "cap" / "capture.json").read_text())["acquisition"]["complete"] is False
+    again = Drifting(small_sample(), RIG, leds)
+    with pytest.raises(MatscanError, match=r"during the capture"):
+        acquire(tmp_path / "cap", RIG, again, leds, SIX)
+    assert again.shots == 0
+
+    record = acquire(tmp_path / "still", RIG, VirtualCamera(small_sample(), RIG, leds), leds, SIX)
+    assert record["complete"] and record["drift_px"] < 0.3
 
 
 def test_metering_takes_the_longest_exposure_at_which_every_led_passes():

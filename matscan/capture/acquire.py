@@ -24,10 +24,18 @@ more shot tells a fault from what the sample itself does to the photos:
   shadows change with the light and can look like movement between two LEDs; if the
   same light shows the sample where it was, the frame is kept.
 
+After the last LED frame, an early LED frame has its LED shot once more and compared
+with it (the earliest whose texture the movement check could follow, else the first
+that shows the sample): a sample that crept a fraction of a pixel per frame, or
+moved in frames too dark to show it, stops the capture here (and on every rerun: its
+photos are kept but do not line up); otherwise ``capture.json`` records the shift
+(``drift_px``).
+
 With the virtual camera at default settings, on every procedural family and the five
 artist-style sets at 128² (``bench/capture_checks.py``), these checks stopped 13 of 28
-good captures before; with the extra shot, none, while a dead LED is caught on all 28
-(16 before) and a 3 px knock on 20 (15 before; docs/hardware.md).
+good captures before; with the extra shots, none, while a dead LED is caught on all 28
+(16 before), a 3 px knock on 21 (15 before) and a drift of 0.15 px per photo on 22 (2
+before; docs/hardware.md).
 
 Never lost, never overwritten:
 
@@ -109,6 +117,7 @@ class Frame:
 class Progress:
     done: list[dict[str, Any]] = field(default_factory=list)
     exposure_s: float | None = None
+    drift: dict[str, Any] | None = None  # the end-of-capture movement check's journal event
 
 
 def plan(rig: Rig, cfg: AcquireConfig) -> list[Frame]:
@@ -164,6 +173,7 @@ _EVENT_FIELDS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "start": {"settings": dict},
     "exposure": {"exposure_s": (int, float)},
     "frame": {"stem": str, "file": str, "sha256": str},
+    "drift": {"stem": str, "shift_px": (int, float), "response": (int, float), "moved": bool},
 }
 
 
@@ -175,7 +185,7 @@ def _check_event(path: Path, number: int, event: Any) -> None:
         )
     for name, kind in _EVENT_FIELDS.get(str(event.get("event")), {}).items():
         value = event.get(name)
-        if not isinstance(value, kind) or isinstance(value, bool):
+        if not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool):
             raise input_error(
                 path,
                 f"line {number}: this {event['event']} event has no usable {name!r}; this capture cannot be resumed",
@@ -230,9 +240,10 @@ def sample_shift(a: np.ndarray, b: np.ndarray, floor: float = 1e-3) -> tuple[flo
     the shading removed (minus a Gaussian blur of σ 2 px), which keeps the sample's own
     texture while the light moves. ``floor`` is added before the log: the dark frame's
     99th percentile, so that noise in the darkest pixels does not outweigh the texture
-    (on five dark or glossy procedural materials and three textured ones, at their
-    metered exposure, it found a true 3 px shift under the same light in 75 of 96 frame
-    pairs, against 63 with 1e-3)."""
+    (measured once: on five dark or glossy procedural materials and three textured ones
+    at 128², each captured still and knocked 3 px before LED 12 at its metered exposure,
+    LEDs 12-23's frames of the two captures compared pairwise showed the 3 px in 75 of
+    96 pairs, against 63 with 1e-3)."""
     import cv2
 
     def texture(img: np.ndarray) -> np.ndarray:
@@ -267,7 +278,10 @@ def choose_exposure(
     cannot saturate more at a shorter one). An exposure that is too long then costs one
     shot, not every LED up to the brightest: on the 28 materials of
     ``bench/capture_checks.py``, 64 test shots per capture before, 27 after at 64² (59
-    and 27 at 256²), and the same exposure chosen for every one."""
+    and 27 at 256²), and the same exposure chosen for every one.
+
+    The record's ``worst_saturated`` is the largest fraction among the LEDs tried at
+    that exposure."""
     exposure = cfg.start_exposure_s
     order = list(lights)
     passed: set[int] = set()
@@ -343,14 +357,19 @@ def acquire(
         state = _replay(out, events, frames, journal)
         exposure = state.exposure_s if camera.controls_exposure else None
         done = {d["stem"] for d in state.done}
-        dark = reference = None
+        dark = reference = first = None
         for d in state.done:
-            if d["kind"] in ("dark", "led", "chart") and not _kept_dark(d):
+            if d["kind"] in ("dark", "led", "chart"):
                 px = _grey(read_image(out / d["file"]).pixels)
                 if d["kind"] == "dark":
                     dark = px
-                else:  # the last LED frame that shows the sample, and its light
-                    reference = (px, Illumination(led=d["light"], level=cfg.level))
+                elif _shows_sample(px, dark, cfg):  # the last LED frame that does, its light and name
+                    current = (px, Illumination(led=d["light"], level=cfg.level), d["stem"])
+                    first = _anchor(first, reference, d.get("checks", {}), current)
+                    reference = current
+        finished = any(e.get("event") == "complete" for e in events)  # nothing more to shoot
+        if state.drift is not None and state.drift["moved"]:
+            raise MatscanError(_drift_message(state.drift, cfg))
         t0 = time.perf_counter()
         try:
             leds.off()
@@ -369,6 +388,8 @@ def acquire(
             for frame in frames:
                 if frame.stem in done:
                     continue
+                if frame.kind == "back" and state.drift is None and not finished:  # the LEDs are done
+                    state.drift = _drift_check(out, journal, camera, leds, exposure, cfg, first, dark)
                 if frame.empty and not emptied:
                     if hasattr(camera, "sample_present"):  # the virtual stage empties itself
                         camera.sample_present = False
@@ -385,10 +406,16 @@ def acquire(
                 state.done.append(entry)
                 if frame.kind == "dark":
                     dark = _grey(read_image(out / entry["file"]).pixels)
-                elif frame.kind in ("led", "chart") and not _kept_dark(entry):
-                    reference = (_grey(read_image(out / entry["file"]).pixels), frame.light)
+                elif frame.kind in ("led", "chart"):
+                    px = _grey(read_image(out / entry["file"]).pixels)
+                    if _shows_sample(px, dark, cfg):  # not a frame kept as dark as the dark frame
+                        current = (px, frame.light, frame.stem)
+                        first = _anchor(first, reference, entry["checks"], current)
+                        reference = current
                 _write_capture_json(out, rig, state, camera, leds, exposure, cfg, encoding, complete=False)
                 bar.update(1)
+            if state.drift is None and not finished:
+                state.drift = _drift_check(out, journal, camera, leds, exposure, cfg, first, dark)
             bar.close()
         except BaseException:
             try:  # everything off, but the error that stopped the capture is the one to report
@@ -434,6 +461,8 @@ def _replay(out: Path, events: list[dict[str, Any]], frames: list[Frame], journa
     for e in events:
         if e.get("event") == "exposure":
             state.exposure_s = e["exposure_s"]
+        elif e.get("event") == "drift":
+            state.drift = e
         elif e.get("event") == "frame":
             path = out / e["file"]
             if not path.is_file() or _sha256(path.read_bytes()) != e["sha256"]:
@@ -501,9 +530,12 @@ def _shot(camera, leds, illumination: Illumination, exposure: float, out: Path):
 LONGER_EXPOSURE = 16.0
 
 
-def _kept_dark(entry: dict[str, Any]) -> bool:
-    """A frame kept though as dark as the dark frame (its LED showed at a longer exposure)."""
-    return "lit_p99" in entry.get("checks", {})
+def _shows_sample(px: np.ndarray, dark: np.ndarray | None, cfg: AcquireConfig) -> bool:
+    """Whether an LED frame rises above the dark frame (the dark check's test), so that
+    it can be the reference for the next frame's movement check; a frame kept though as
+    dark as the dark frame (its LED showed at a longer exposure) cannot. Decided from the
+    photo, so a frame recovered on resume is judged as it was when taken."""
+    return dark is None or float(np.percentile(px, 99)) >= float(np.percentile(dark, 99)) + cfg.dark_margin
 
 
 def longer_exposure(exposure: float | None, cfg: AcquireConfig) -> float | None:
@@ -529,16 +561,52 @@ def _lit_at(longer: float, frame: Frame, camera, leds, cfg: AcquireConfig, out: 
     return {"lit_exposure_s": longer, "lit_p99": lit, "lit_dark_p99": off}
 
 
-def _still_under_same_light(camera, leds, exposure, cfg: AcquireConfig, reference, dark, out: Path) -> dict | None:
+def _same_light(camera, leds, exposure, reference, dark, out: Path) -> dict[str, float]:
     """For a frame that seems to have moved: the previous LED frame's LED again, compared
-    with that frame. Its measurements if the sample is where it was (or the two share too
-    little texture to tell), else None."""
-    image, light = reference
+    with that frame (the same light, so only movement shifts it)."""
+    image, light, _ = reference
     again = _grey(_shot(camera, leds, light, exposure if exposure is not None else 0.0, out).pixels)
     shift, response = sample_shift(image, again, noise_floor(dark))
-    if response >= MIN_RESPONSE and shift > cfg.max_shift_px:
-        return None
     return {"same_light_shift_px": shift, "same_light_response": response}
+
+
+def _anchor(anchor, previous, checks: dict[str, Any], current):
+    """The LED frame the end-of-capture check compares (``(image, light, stem,
+    textured)``): the earliest whose texture the movement check could follow (the one
+    before the first frame that matched its predecessor), else the first that shows the
+    sample. ``previous`` and ``current`` are the last reference and the new frame."""
+    if anchor is not None and anchor[3]:
+        return anchor
+    if previous is not None and checks.get("shift_response", 0.0) >= MIN_RESPONSE:
+        return (*previous, True)
+    return anchor or (*current, False)
+
+
+def _drift_check(out: Path, journal: Journal, camera, leds, exposure, cfg: AcquireConfig, first, dark):
+    """After the last LED frame: the :func:`_anchor` frame, its LED shot again and
+    compared with it (the same light), which sees a slow drift or a move that the
+    frame-to-frame check missed. Journalled; a sample that moved stops the capture
+    (also on every rerun: its photos do not line up). None where there is nothing to
+    compare (calibration targets, no frame that shows the sample)."""
+    if first is None or cfg.target is not None:
+        return None
+    image, light, stem, _ = first
+    again = _grey(_shot(camera, leds, light, exposure if exposure is not None else 0.0, out).pixels)
+    shift, response = sample_shift(image, again, noise_floor(dark))
+    moved = response >= MIN_RESPONSE and shift > cfg.max_shift_px
+    event = {"event": "drift", "stem": stem, "shift_px": shift, "response": response, "moved": moved}
+    journal.append(event)
+    if moved:
+        raise MatscanError(_drift_message(event, cfg))
+    return event
+
+
+def _drift_message(event: dict[str, Any], cfg: AcquireConfig) -> str:
+    return (
+        f"capture: the sample moved {event['shift_px']:.1f} px during the capture (at most "
+        f"{cfg.max_shift_px:g}): {event['stem']}'s LED shot again after the last LED frame shows it "
+        "elsewhere, so the photos do not line up; take the capture again in a new folder (these photos are kept)"
+    )
 
 
 def _take(
@@ -546,19 +614,19 @@ def _take(
 ) -> dict:
     """Shoot a frame until it passes its checks, or one more shot shows that its problem
     is the sample's own (module doc); write it under its final name. ``reference`` is the
-    last LED frame that shows the sample and its light, or None; ``darks`` keeps the dark
-    frames' 99th percentiles at longer exposures between frames."""
+    last LED frame that shows the sample, its light and name, or None; ``darks`` keeps
+    the dark frames' 99th percentiles at longer exposures between frames."""
     from matscan.imagefile import read_image
 
     problem = None
-    final = out / f"{frame.stem}{camera.suffix}"
-    tmp = out / f".{frame.stem}.partial{camera.suffix}"
     asked: set[str] = set()  # the problems whose extra shot was taken (once per frame)
     found: dict[str, tuple[str, str]] = {}  # what those shots showed, for the last word
     for attempt in range(1, cfg.retakes + 2):
         _light(leds, frame.light)
         data = camera.shoot(exposure if exposure is not None else 0.0)
         leds.off()
+        final = out / f"{frame.stem}{camera.suffix}"  # a folder camera's suffix is its last file's
+        tmp = out / f".{frame.stem}.partial{camera.suffix}"
         if final.exists():  # never overwrite a photo
             raise input_error(final, "exists but the journal does not list it; this capture cannot be resumed")
         with open(tmp, "wb") as f:
@@ -578,7 +646,7 @@ def _take(
                 found["dark"] = (
                     "dark",
                     f"{problem[1]} (or the sample sends almost none of its light to the camera: "
-                    "a longer exposure would show which)",
+                    "if the LED lit, start a new capture with a longer exposure)",
                 )
             else:
                 found["dark"] = (
@@ -587,15 +655,16 @@ def _take(
                 )
         elif problem is not None and problem[0] == "moved" and "moved" not in asked:
             asked.add("moved")
-            still = _still_under_same_light(camera, leds, exposure, cfg, reference, dark, out)
-            if still is not None:
-                checks.update(still)
+            same = _same_light(camera, leds, exposure, reference, dark, out)
+            if same["same_light_response"] >= MIN_RESPONSE and same["same_light_shift_px"] <= cfg.max_shift_px:
+                checks.update(same)  # the sample is where it was: the light moved, not the sample
                 problem = None
-            else:
+            else:  # it moved, or no longer matches at all (turned, fell, taken away)
+                shown = "shows it moved" if same["same_light_response"] >= MIN_RESPONSE else "no longer matches it"
                 found["moved"] = (
                     "moved",
                     f"the sample moved {checks['shift_px']:.1f} px since the last LED frame (at most "
-                    f"{cfg.max_shift_px:g}), and that frame's LED again shows it moved; the photos so far "
+                    f"{cfg.max_shift_px:g}), and that frame's LED again {shown}; the photos so far "
                     "show it where it was: start a new capture (or put it back exactly and run again)",
                 )
         if problem is None:
@@ -629,6 +698,9 @@ def _write_capture_json(out, rig, state, camera, leds, exposure, cfg, encoding, 
         "retakes": sum(d.get("attempts", 1) - 1 for d in state.done),  # so a resumed capture counts the same
         "complete": complete,
     }
+    if state.drift is not None:  # the sample's movement over the capture (the end-of-capture check)
+        acquisition["drift_px"] = round(state.drift["shift_px"], 3)
+        acquisition["drift_response"] = round(state.drift["response"], 3)
     chart = next((d["file"] for d in state.done if d["kind"] == "chart"), None)
     if chart is not None:
         acquisition["chart"] = chart

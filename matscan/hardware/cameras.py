@@ -89,7 +89,7 @@ class VirtualCamera:
         # sample that moved) new noise, as a sensor's would be
         key = f"{self.seed}|{state.led}|{state.back}|{state.level:.6f}|{exposure_s:.9g}|{self.sample_present}|"
         scene = hashlib.sha256(key.encode())
-        scene.update(radiance.contiguous().numpy().tobytes())
+        scene.update((radiance * 2**16).round().to(torch.int64).numpy().tobytes())  # not the last bits
         seed = int.from_bytes(scene.digest()[:8], "little") % (2**63)
         photo = apply_camera(radiance, self.camera, torch.Generator().manual_seed(seed)).clamp(0, 1)
         if self.camera.encoding == "srgb":
