@@ -122,13 +122,13 @@ def main() -> None:
             dead = outcome(Path(tmp) / f"{i}-dead", DeadLed, maps)[0]
             knock = outcome(Path(tmp) / f"{i}-knock", Knocked, maps)[0]
             drift = outcome(Path(tmp) / f"{i}-drift", Drifting, maps)[0]
-            counts["drift caught"] += good == "ok" and "moved" in drift
+            counts["drift caught"] += good == "ok" and ("moved" in drift or "no longer matches" in drift)
             counts["photos taken in the good captures"] += shots
             counts["of which the metering's"] += metering
             counts["false stops"] += good != "ok"
             counts["dead LED caught"] += dead.startswith(f"led_{FAULT_LED:02d}: it is as dark")
             counts["knock caught at led_12"] += knock.startswith(f"led_{FAULT_LED:02d}: the sample moved")
-            counts["knock caught after the last LED frame"] += knock.startswith("the sample moved")
+            counts["knock caught after the last LED frame"] += knock.startswith(("the sample moved", "the sample no"))
             print(
                 f"{name:26s} good: {good[:40]:40s} dead: {dead[:30]:30s} knocked: {knock[:40]:40s} drift: {drift[:40]}",
                 flush=True,

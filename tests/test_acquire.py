@@ -63,6 +63,10 @@ def test_a_whole_capture_reconstructs_to_the_virtual_sample(tmp_path):
         board.close()
     assert record["frames"] == 29 and record["complete"] and record["exposure_s"] == 0.01
     assert board.lit() == []
+    events = [
+        line for line in (tmp_path / "cap" / JOURNAL).read_text().splitlines() if '"drift"' in line or "back_" in line
+    ]
+    assert '"drift"' in events[0] and record["drift_px"] < 0.5  # checked while the sample is still on the stage
     cap = load_capture(tmp_path / "cap")
     assert len(cap.files) == 24 and sorted(cap.backlight) == ["blue", "blue_empty", "green", "green_empty"]
     assert cap.light_indices == tuple(range(24))
@@ -426,6 +430,42 @@ def test_a_slow_drift_is_caught_after_the_last_led_frame(tmp_path):
     assert record["complete"] and record["drift_px"] < 0.3
 
 
+def test_the_end_of_capture_check_on_resume_and_a_sample_taken_away(tmp_path):
+    """Killed at the end-of-capture shot: the rerun takes it, once. A capture completed
+    before the check existed (no drift line) is left as it is. A sample taken away before
+    the end-of-capture shot no longer matches its frame: the capture stops."""
+    import json
+
+    leds = VirtualLeds()
+    with pytest.raises(MatscanError, match="disconnected"):  # dark + 6 LED frames, then the check's shot
+        acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds, fail_after=7), leds, SIX)
+    assert '"drift"' not in (tmp_path / "cap" / JOURNAL).read_text()
+    camera = VirtualCamera(small_sample(), RIG, leds)
+    record = acquire(tmp_path / "cap", RIG, camera, leds, SIX)
+    assert camera.shots == 1 and record["complete"]
+    assert (tmp_path / "cap" / JOURNAL).read_text().count('"drift"') == 1
+
+    journal = tmp_path / "cap" / JOURNAL  # as a capture completed before the check existed
+    journal.write_text("".join(line + "\n" for line in journal.read_text().splitlines() if '"drift"' not in line))
+    before = files(tmp_path / "cap")
+    camera = VirtualCamera(small_sample(), RIG, leds)
+    record = acquire(tmp_path / "cap", RIG, camera, leds, SIX)
+    assert camera.shots == 0 and "drift_px" not in record
+    assert {k: v for k, v in files(tmp_path / "cap").items() if k != "capture.json"} == {
+        k: v for k, v in before.items() if k != "capture.json"
+    }
+
+    class TakenAway(VirtualCamera):  # off the stage after the last LED frame
+        def radiance(self, state):
+            self.sample_present = self.shots <= 7
+            return super().radiance(state)
+
+    with pytest.raises(MatscanError, match=r"the sample no longer matches led_00: its LED shot again"):
+        acquire(tmp_path / "away", RIG, TakenAway(small_sample(), RIG, leds), leds, SIX)
+    drift = [json.loads(line) for line in (tmp_path / "away" / JOURNAL).read_text().splitlines() if '"drift"' in line]
+    assert drift[0]["moved"] and drift[0]["textured"] and drift[0]["response"] < 0.15
+
+
 def test_metering_takes_the_longest_exposure_at_which_every_led_passes():
     """LED k saturates min(1, exposure × rate_k) of its pixels. Closed form: the
     brightest (rate 40/s) allows at most 0.001 / 40 = 25 µs, so 10 ms halved 9 times
@@ -480,6 +520,14 @@ def test_folders_that_are_not_this_capture_are_refused(tmp_path):
         ('{"event": "frame"}', "line 2: this frame event has no usable 'stem'"),
         ('{"event": "frame", "stem": "led_00", "file": "../x.png", "sha256": "0"}', "'../x.png' is not a file name"),
         ('{"event": "exposure", "exposure_s": "fast"}', "this exposure event has no usable 'exposure_s'"),
+        (
+            '{"event": "drift", "stem": "led_00", "shift_px": 0.1, "response": 0.9, "moved": 1}',
+            "this drift event has no usable 'moved'",
+        ),
+        (
+            '{"event": "drift", "stem": "led_00", "shift_px": true, "response": 0.9, "moved": false}',
+            "this drift event has no usable 'shift_px'",
+        ),
     ],
 )
 def test_a_damaged_journal_is_one_line_naming_it(tmp_path, line, words):
@@ -504,6 +552,8 @@ def test_calibration_targets(tmp_path):
     leds = VirtualLeds()
     grey = VirtualCamera(target_maps("grey", 128), RIG, leds)
     acquire(tmp_path / "grey", RIG, grey, leds, AcquireConfig(target="grey", exposure_s=0.01, max_saturated=0.3))
+    assert grey.shots == 25  # the frames only: a target has no texture to follow, so no movement shots
+    assert '"drift"' not in (tmp_path / "grey" / JOURNAL).read_text()
     cal = calibrate(tmp_path / "cal.json", grey=tmp_path / "grey")
     assert len(cal.light_scales) == 24
     assert all(abs(c - 1) < 0.05 for s in cal.light_scales.values() for c in s)

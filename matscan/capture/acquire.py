@@ -34,7 +34,7 @@ photos are kept but do not line up); otherwise ``capture.json`` records the shif
 With the virtual camera at default settings, on every procedural family and the five
 artist-style sets at 128² (``bench/capture_checks.py``), these checks stopped 13 of 28
 good captures before; with the extra shots, none, while a dead LED is caught on all 28
-(16 before), a 3 px knock on 21 (15 before) and a drift of 0.15 px per photo on 22 (2
+(16 before), a 3 px knock on 23 (15 before) and a drift of 0.15 px per photo on 24 (2
 before; docs/hardware.md).
 
 Never lost, never overwritten:
@@ -173,7 +173,7 @@ _EVENT_FIELDS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "start": {"settings": dict},
     "exposure": {"exposure_s": (int, float)},
     "frame": {"stem": str, "file": str, "sha256": str},
-    "drift": {"stem": str, "shift_px": (int, float), "response": (int, float), "moved": bool},
+    "drift": {"stem": str, "shift_px": (int, float), "response": (int, float), "moved": bool},  # and textured
 }
 
 
@@ -367,7 +367,10 @@ def acquire(
                     current = (px, Illumination(led=d["light"], level=cfg.level), d["stem"])
                     first = _anchor(first, reference, d.get("checks", {}), current)
                     reference = current
-        finished = any(e.get("event") == "complete" for e in events)  # nothing more to shoot
+        # no end-of-capture check for a capture finished, or already at its backlight
+        # frames (the sample may be off the stage), before the check existed
+        finished = any(e.get("event") == "complete" for e in events)
+        backlit = finished or any(d["kind"] == "back" for d in state.done)
         if state.drift is not None and state.drift["moved"]:
             raise MatscanError(_drift_message(state.drift, cfg))
         t0 = time.perf_counter()
@@ -388,7 +391,7 @@ def acquire(
             for frame in frames:
                 if frame.stem in done:
                     continue
-                if frame.kind == "back" and state.drift is None and not finished:  # the LEDs are done
+                if frame.kind == "back" and state.drift is None and not backlit:  # the LEDs are done
                     state.drift = _drift_check(out, journal, camera, leds, exposure, cfg, first, dark)
                 if frame.empty and not emptied:
                     if hasattr(camera, "sample_present"):  # the virtual stage empties itself
@@ -414,7 +417,7 @@ def acquire(
                         reference = current
                 _write_capture_json(out, rig, state, camera, leds, exposure, cfg, encoding, complete=False)
                 bar.update(1)
-            if state.drift is None and not finished:
+            if state.drift is None and not backlit:
                 state.drift = _drift_check(out, journal, camera, leds, exposure, cfg, first, dark)
             bar.close()
         except BaseException:
@@ -590,11 +593,15 @@ def _drift_check(out: Path, journal: Journal, camera, leds, exposure, cfg: Acqui
     compare (calibration targets, no frame that shows the sample)."""
     if first is None or cfg.target is not None:
         return None
-    image, light, stem, _ = first
+    image, light, stem, textured = first
     again = _grey(_shot(camera, leds, light, exposure if exposure is not None else 0.0, out).pixels)
     shift, response = sample_shift(image, again, noise_floor(dark))
-    moved = response >= MIN_RESPONSE and shift > cfg.max_shift_px
+    # a frame whose texture the movement check followed must match itself under its own
+    # light; one that never showed texture enough can only show a move it matches
+    lost = textured and response < MIN_RESPONSE
+    moved = lost or (response >= MIN_RESPONSE and shift > cfg.max_shift_px)
     event = {"event": "drift", "stem": stem, "shift_px": shift, "response": response, "moved": moved}
+    event["textured"] = bool(textured)
     journal.append(event)
     if moved:
         raise MatscanError(_drift_message(event, cfg))
@@ -602,10 +609,18 @@ def _drift_check(out: Path, journal: Journal, camera, leds, exposure, cfg: Acqui
 
 
 def _drift_message(event: dict[str, Any], cfg: AcquireConfig) -> str:
+    if event["response"] < MIN_RESPONSE:
+        seen = (
+            f"the sample no longer matches {event['stem']}: its LED shot again after the last LED frame "
+            "shows something else (the sample turned, fell or was taken away, or the LED failed)"
+        )
+    else:
+        seen = (
+            f"the sample moved {event['shift_px']:.1f} px during the capture (at most {cfg.max_shift_px:g}): "
+            f"{event['stem']}'s LED shot again after the last LED frame shows it elsewhere"
+        )
     return (
-        f"capture: the sample moved {event['shift_px']:.1f} px during the capture (at most "
-        f"{cfg.max_shift_px:g}): {event['stem']}'s LED shot again after the last LED frame shows it "
-        "elsewhere, so the photos do not line up; take the capture again in a new folder (these photos are kept)"
+        f"capture: {seen}, so the photos do not line up; take the capture again in a new folder (these photos are kept)"
     )
 
 
@@ -642,6 +657,8 @@ def _take(
             if shown is not None:  # no movement check: a frame this dark shows little of the texture
                 checks, problem = frame_checks(frame, image, dark, None, cfg, lit=True)
                 checks.update(shown)
+            elif longer is None and exposure is not None:  # already the longest exposure
+                found["dark"] = ("dark", f"it is as dark as the dark frame at {exposure:g} s: did the LED light?")
             elif longer is None:
                 found["dark"] = (
                     "dark",
@@ -699,7 +716,8 @@ def _write_capture_json(out, rig, state, camera, leds, exposure, cfg, encoding, 
         "complete": complete,
     }
     if state.drift is not None:  # the sample's movement over the capture (the end-of-capture check)
-        acquisition["drift_px"] = round(state.drift["shift_px"], 3)
+        follows = state.drift["response"] >= MIN_RESPONSE  # below, the shift is the noise's
+        acquisition["drift_px"] = round(state.drift["shift_px"], 3) if follows else None
         acquisition["drift_response"] = round(state.drift["response"], 3)
     chart = next((d["file"] for d in state.done if d["kind"] == "chart"), None)
     if chart is not None:
