@@ -712,9 +712,10 @@ def cmd_capture(args: argparse.Namespace) -> str:
         if board is not None:
             board.close()
     exposure = f"{record['exposure_s']:.4g} s" if record["exposure_s"] else "set by the camera"
+    drift = f", sample moved {record['drift_px']:.2f} px" if record.get("drift_px") is not None else ""
     return (
         f"capture: wrote {args.out} ({record['frames']} photos, exposure {exposure}, "
-        f"{record['retakes']} retaken; camera {record['camera']}, LEDs {record['leds']})"
+        f"{record['retakes']} retaken{drift}; camera {record['camera']}, LEDs {record['leds']})"
     )
 
 

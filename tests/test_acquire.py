@@ -662,7 +662,7 @@ def test_cli_capture_summary(tmp_path, capsys):
     ]
     assert main(args) == 0
     out = capsys.readouterr().out
-    assert "capture: wrote" in out and "7 photos, exposure 0.01 s, 0 retaken" in out
+    assert "capture: wrote" in out and "7 photos, exposure 0.01 s, 0 retaken, sample moved 0.00 px" in out
     assert main(["capture", "--camera", "nikon", "--out", str(tmp_path / "x")]) == 2
     assert "--camera: 'nikon' is not virtual:MAPS, folder:PATH or gphoto2" in capsys.readouterr().err
 
