@@ -133,3 +133,42 @@ def test_viewer_shows_alpha_and_emission(report, tmp_path):
         means[name] = _canvas_mean(page, tmp_path)
     assert means["glow"] > means["plain"] + 0.05  # emission 0.3 adds light everywhere
     assert abs(means["holes"] - means["plain"]) > 0.02
+
+
+@pytest.fixture(scope="module")
+def rti_report(tmp_path_factory):
+    """The report of an RTI-style capture: directional lights on rings at 20°, 45° and 70°
+    and the zenith (as `rig from-lp` makes them), an orthographic camera."""
+    import math
+
+    from matscan.capture.rti import LightFile, rig_from_lp
+
+    directions = [(0.0, 0.0, 1.0)]
+    for elevation in (20.0, 45.0, 70.0):
+        for k in range(4):
+            e, a = math.radians(elevation), math.radians(90.0 * k + elevation)
+            directions.append((math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)))
+    names = tuple(f"image{k:02d}.png" for k in range(len(directions)))
+    rig = rig_from_lp(LightFile(names, tuple(directions), ()), field_mm=(40.0, 40.0))
+    assert rig.camera_w == 0 and all(light.direction is not None for light in rig.lights)
+    tmp = tmp_path_factory.mktemp("rti-report")
+    simulate(read_mapset(sample_maps_path()), rig, tmp / "cap", size=64, camera=CameraModel(read_noise=0.001))
+    reconstruct(tmp / "cap", tmp / "out", ReconstructConfig(model="none", refine_steps=10))
+    return tmp / "out" / "report.html"
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (make test installs it)")
+def test_viewer_renders_an_rti_capture(rti_report, tmp_path):
+    # the page carries the orthographic camera, and the viewer draws it and relights it:
+    # a light as far as the rig's reference distance (1 m) gives the lights' irradiance
+    text = rti_report.read_text()
+    assert re.search(r'"camera_w":\s*0(\.0)?\b', text), "the viewer is not told the camera is orthographic"
+    means = {}
+    for name, light in (("left", "-700,0,700"), ("right", "700,0,700")):
+        proc = _chromium(["--dump-dom", f"file://{rti_report}?light={light}&stats=1"], tmp_path)
+        assert 'data-viewer="ok"' in proc.stdout, proc.stdout[-500:] + proc.stderr[-2000:]
+        assert not re.search(r"Uncaught|CONSOLE\(\d+\).*[Ee]rror", proc.stderr), proc.stderr[-2000:]
+        means[name] = float(re.search(r'data-mean="([0-9.]+)"', proc.stdout).group(1))
+        std = float(re.search(r'data-std="([0-9.]+)"', proc.stdout).group(1))
+        assert means[name] > 0.02 and std > 0.01  # the canvas is not blank
+    assert means["left"] != means["right"]
