@@ -301,13 +301,17 @@ def _procedural_count(spec: str) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> str:
-    from matscan.evaluate import evaluate_to_folder
+    from matscan.evaluate import check_methods, evaluate_to_folder
     from matscan.materials.artist import ARTIST_NAMES, artist_material
     from matscan.materials.library import read_any
     from matscan.materials.photos import photo_material
     from matscan.materials.procedural import random_material
     from matscan.outputs import check_destination
 
+    lights = [s.strip() for s in args.lights.split(",")]
+    methods = [m.strip() for m in args.methods.split(",")]
+    encodings = [e.strip() for e in args.encodings.split(",")]
+    check_methods(methods, encodings, lights)  # before any material is made
     counts = {spec: _procedural_count(spec) for spec in args.mapsets if spec.startswith("procedural:")}
     inputs = [_maps_arg(spec) for spec in args.mapsets if spec not in counts and spec not in SETS]
     # the output first, before any material is made (evaluate_to_folder checks it again, locked)
@@ -327,9 +331,6 @@ def cmd_evaluate(args: argparse.Namespace) -> str:
 
             maps = read_any(_maps_arg(spec))
             materials.append((Path(spec).name, resize_maps(maps, args.size) if maps.size[0] != args.size else maps))
-    lights = [s.strip() for s in args.lights.split(",")]
-    methods = [m.strip() for m in args.methods.split(",")]
-    encodings = [e.strip() for e in args.encodings.split(",")]
     res = evaluate_to_folder(
         materials,
         Path(args.out),
@@ -1083,7 +1084,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--methods",
         default="baseline,nets,nets+refine,fit",
-        help="baseline, nets, nets+refine, fit, auto, or nets:FILE / nets+refine:FILE / auto:FILE for other weights",
+        help="baseline, nets, nets+refine, fit, auto, hsh (the RTI field's per-pixel curve fit, relighting "
+        "only, from 9 lights), or nets:FILE / nets+refine:FILE / auto:FILE for other weights",
     )
     p.add_argument(
         "--jobs", type=positive_int, default=1, help="worker processes, one capture each at a time (default 1)"

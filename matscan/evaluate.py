@@ -23,9 +23,10 @@ from torch import Tensor
 from matscan.color import linear_to_srgb
 from matscan.data import fixed_validation_set
 from matscan.errors import MatscanError
+from matscan.hsh import HSH_TERMS, fit_hsh_field, relight_hsh_field
 from matscan.mapset import MapSet
 from matscan.nets import MAPS, MapNets, network_input
-from matscan.render import flat_albedo, flat_irradiance, render, surface_points
+from matscan.render import flat_albedo, flat_irradiance, light_vectors, render, surface_points
 from matscan.rig import LightSet, Rig, resolve_rig
 
 if TYPE_CHECKING:
@@ -121,7 +122,9 @@ def subset_table(
 #: from the flat start); "auto": what `matscan reconstruct` does by default (the networks,
 #: then refinement where ``--refine auto`` chooses it). Any other weights file is given
 #: as "nets:PATH" (or "nets+refine:PATH", "auto:PATH"): ablation variants and candidates.
-METHODS = ("baseline", "nets", "nets+refine", "fit", "auto")
+#: "hsh": no maps, the RTI field's relighting fit (:func:`hsh_images`), scored on
+#: re-rendering only, with 9 or more photos.
+METHODS = ("baseline", "nets", "nets+refine", "fit", "auto", "hsh")
 ENCODINGS = {"srgb8": ("srgb", 8), "linear16": ("linear", 16)}
 
 
@@ -146,10 +149,21 @@ def rendering_scores(
     """RMSE (linear, clipped to [0, 1] like a photo) between renderings of the predicted
     and true maps under ``lights``; and mean LDR FLIP of the sRGB images where the
     flip-evaluator package is installed."""
-    pts = surface_points(field_mm, pred.size)
+    a = map_images(pred, lights, field_mm)
+    b = map_images(truth, lights, field_mm)
+    return image_scores(a, b, prefix, flip)
+
+
+def map_images(maps: MapSet, lights: LightSet, field_mm) -> Tensor:
+    """Linear renderings (L, 3, H, W) of maps under lights, clipped to [0, 1] like a photo."""
+    pts = surface_points(field_mm, maps.size)
     with torch.no_grad():
-        a = render(pred.diffuse, pred.specular, pred.roughness, pred.normal, lights, pts).clamp(0, 1)
-        b = render(truth.diffuse, truth.specular, truth.roughness, truth.normal, lights, pts).clamp(0, 1)
+        return render(maps.diffuse, maps.specular, maps.roughness, maps.normal, lights, pts).clamp(0, 1)
+
+
+def image_scores(a: Tensor, b: Tensor, prefix: str, flip: bool = True) -> dict[str, float]:
+    """RMSE between predicted images ``a`` and true ones ``b`` (both linear, (L, 3, H, W));
+    and mean LDR FLIP of their sRGB encodings where flip-evaluator is installed."""
     out = {f"{prefix}_rmse": float((a - b).square().mean().sqrt())}
     if flip:
         try:
@@ -193,8 +207,23 @@ def _method_nets(method: str, cache: dict) -> tuple[MapNets | None, str]:
     return cache[key], refine
 
 
-def check_methods(methods: Sequence[str], encodings: Sequence[str]) -> None:
-    """Refuse unknown methods, encodings or weights files before any work starts."""
+def check_methods(
+    methods: Sequence[str], encodings: Sequence[str], lights: Sequence[str] | None = None, rig_name: str = "dome24"
+) -> None:
+    """Refuse unknown methods, encodings, light subsets (when given) or weights files
+    before any work starts."""
+    if lights is not None:
+        rig = resolve_rig(rig_name)
+        for subset in lights:
+            if str(subset) not in rig.subsets:
+                names = ", ".join(rig.subsets) or "none"
+                raise MatscanError(f"--lights: {subset!r} is not one of the light counts of rig {rig.name} ({names})")
+        if "hsh" in methods and all(len(rig.subsets[str(s)]) < HSH_TERMS for s in lights):
+            enough = ", ".join(k for k, v in rig.subsets.items() if len(v) >= HSH_TERMS)
+            raise MatscanError(
+                f"--lights: hsh fits {HSH_TERMS} coefficients a pixel and needs a subset of {HSH_TERMS} or more "
+                f"lights ({rig.name}: {enough})"
+            )
     for enc in encodings:
         if enc not in ENCODINGS:
             raise MatscanError(f"encodings: {enc!r} is not one of {', '.join(ENCODINGS)}")
@@ -261,6 +290,10 @@ def study_job(
     capture = study_capture(name, truth, enc, subset, rig_name, noise)
     rows = []
     for method in methods:
+        if method == "hsh":
+            if len(capture.files) >= HSH_TERMS:
+                rows.append(_hsh_row(capture, truth, rig, name, enc, subset))
+            continue
         nets, refine = _method_nets(method, _NETS_CACHE)
         t0 = time.perf_counter()
         res = reconstruct_capture(capture, ReconstructConfig(refine=refine, refine_steps=refine_steps), nets)
@@ -271,6 +304,42 @@ def study_job(
         row.update(rendering_scores(res.maps, truth, evaluation_lights(rig), rig.field_mm, "novel"))
         rows.append(row)
     return rows
+
+
+def hsh_images(capture: Capture, lights: LightSet) -> Tensor:
+    """The RTI field's answer to relighting: an order-2 HSH fit per pixel and channel to
+    the capture's photos, with each light's own direction and falloff at every pixel
+    (:func:`matscan.hsh.fit_hsh_field`), evaluated under ``lights``: linear images
+    (L, 3, H, W) in [0, 1]."""
+    return relight_capture_hsh(hsh_of_capture(capture), capture, lights)
+
+
+def hsh_of_capture(capture: Capture) -> Tensor:
+    """The per-pixel HSH coefficients (9, 3, H, W) of a capture's photos (saturated pixels
+    left out of the fit, as the solver leaves them out)."""
+    pts = surface_points(capture.field_mm, capture.size)
+    directions, _ = light_vectors(capture.lights, pts)
+    valid = (~capture.saturated).float()
+    return fit_hsh_field(capture.linear(), flat_irradiance(capture.lights, pts), directions, weights=valid)
+
+
+def relight_capture_hsh(coefficients: Tensor, capture: Capture, lights: LightSet) -> Tensor:
+    pts = surface_points(capture.field_mm, capture.size)
+    directions, _ = light_vectors(lights, pts)
+    return relight_hsh_field(coefficients, flat_irradiance(lights, pts), directions)
+
+
+def _hsh_row(capture: Capture, truth: MapSet, rig: Rig, name: str, enc: str, subset: str) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    coefficients = hsh_of_capture(capture)
+    seconds = time.perf_counter() - t0  # the fit, as the other methods' reconstruction is timed
+    rig_lights, novel = rig.light_set(), evaluation_lights(rig)
+    both = relight_capture_hsh(coefficients, capture, LightSet.cat([rig_lights, novel]))
+    row: dict[str, Any] = {"material": name, "encoding": enc, "lights": subset, "method": "hsh", "seconds": seconds}
+    n = len(rig_lights)
+    row.update(image_scores(both[:n], map_images(truth, rig_lights, rig.field_mm), "rig"))
+    row.update(image_scores(both[n:], map_images(truth, novel, rig.field_mm), "novel"))
+    return row
 
 
 def _worker_init() -> None:
@@ -295,12 +364,7 @@ def run_study(
     beyond floating-point summation order)."""
     from tqdm import tqdm
 
-    check_methods(methods, encodings)
-    rig = resolve_rig(rig_name)
-    for subset in lights:  # unknown subsets fail here, not in a worker
-        if str(subset) not in rig.subsets:
-            names = ", ".join(rig.subsets) or "none"
-            raise MatscanError(f"--lights: {subset!r} is not one of the light counts of rig {rig.name} ({names})")
+    check_methods(methods, encodings, lights, rig_name)  # unknown subsets fail here, not in a worker
     work = [
         (n, m, e, s, tuple(methods), rig_name, refine_steps, noise)
         for n, m in materials
@@ -414,9 +478,9 @@ def plot_curves(rows: list[dict[str, Any]], lights: Sequence[str], path: Path) -
     fig, axes = plt.subplots(1, len(panels), figsize=(4 * len(panels), 3.4))
     for ax, panel in zip(axes, panels, strict=True):
         for m in methods:
-            xs = [int(n) for n in lights if (m, n) in summary]
-            ys = [summary[(m, n)][panel] for n in lights if (m, n) in summary]
-            ax.plot(xs, ys, marker="o", label=m)
+            scored = [n for n in lights if panel in summary.get((m, n), {})]  # hsh has no maps
+            if scored:
+                ax.plot([int(n) for n in scored], [summary[(m, n)][panel] for n in scored], marker="o", label=m)
         ax.set_xscale("log")
         ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
         ax.set_xticks([int(n) for n in lights])
@@ -424,7 +488,7 @@ def plot_curves(rows: list[dict[str, Any]], lights: Sequence[str], path: Path) -
         ax.set_xlabel("input lights")
         ax.set_title(panel.replace("_", " "))
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    axes[-1].legend(fontsize=8)  # every method relights; hsh has no map panels
     fig.tight_layout()
     from matscan.atomic import atomic_file
 
@@ -454,7 +518,7 @@ def evaluate_to_folder(
     from matscan.jsonfile import dumps, finite_or_null
     from matscan.outputs import claim_output
 
-    check_methods(methods, encodings)
+    check_methods(methods, encodings, lights)
     with claim_output(out, "evaluate", inputs, overwrite=overwrite, overwrite_any=overwrite_any) as claim:
         t0 = time.perf_counter()
         rows = run_study(materials, "dome24", lights, methods, encodings, refine_steps, progress=progress, jobs=jobs)
@@ -482,6 +546,14 @@ def _write_tables(
 ) -> None:
     """results.md and the input-count plot of a finished study."""
     plotted = plot_curves(rows, lights, tmp / "input_count.png")
+    rows_all = rows
+    # a method scored at fewer counts (hsh: 9 lights or more) is compared over those only
+    counts = [{r["lights"] for r in rows if r["method"] == m} for m in dict.fromkeys(r["method"] for r in rows)]
+    shared = set.intersection(*counts) if counts else set()
+    over = "light counts"
+    if any(c != shared for c in counts):
+        rows = [r for r in rows if r["lights"] in shared]
+        over = "the light counts every method has (" + ", ".join(n for n in lights if n in shared) + ")"
     md = [
         "# matscan evaluation",
         "",
@@ -490,11 +562,11 @@ def _write_tables(
         "",
         "## By method and number of lights (mean over materials and encodings)",
         "",
-        markdown_table(rows, lights),
-        "## By method and material source (mean over light counts and encodings)",
+        markdown_table(rows_all, lights),
+        f"## By method and material source (mean over {over} and encodings)",
         "",
         summary_table(rows, "source"),
-        "## By method and capture encoding (mean over materials and light counts)",
+        f"## By method and capture encoding (mean over materials and {over})",
         "",
         summary_table(rows, "encoding"),
     ]

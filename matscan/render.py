@@ -332,12 +332,19 @@ def render_maps(
     return img
 
 
+def light_vectors(lights: LightSet, points: Tensor) -> tuple[Tensor, Tensor]:
+    """Unit directions (L, H, W, 3) toward each light from points (H, W, 3), and the
+    squared distances (L, H, W) (design.md: a directional light's vector is its direction
+    at the reference distance, whatever the point)."""
+    lv = lights.position[:, None, None, :] - lights.w[:, None, None, None] * points[None]  # (L, H, W, 3)
+    d2 = (lv * lv).sum(-1)
+    return lv / d2.sqrt()[..., None], d2
+
+
 def flat_irradiance(lights: LightSet, points: Tensor) -> Tensor:
     """I_k (R/d)² max(a_k·(−l), 0)^m_k max(n·l, 0) at points (H, W, 3) of a flat surface
     (n = +z): (L, 3, H, W). A Lambertian pixel of albedo ρ images to ρ times this."""
-    lv = lights.position[:, None, None, :] - lights.w[:, None, None, None] * points[None]  # (L, H, W, 3)
-    d2 = (lv * lv).sum(-1)
-    l_dir = lv / d2.sqrt()[..., None]
+    l_dir, d2 = light_vectors(lights, points)
     lobe = (-(l_dir * lights.axis[:, None, None, :]).sum(-1)).clamp_min(0) ** lights.exponent[:, None, None]
     e = (lights.reference_distance_mm**2 / d2) * lobe * l_dir[..., 2].clamp_min(0)
     return lights.intensity[:, :, None, None] * e[:, None]
