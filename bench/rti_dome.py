@@ -12,7 +12,8 @@ same photos. Both then predict the 20 test photos, which neither saw.
 
 Printed per material: PSNR (dB) and SSIM of the test photos (sRGB, clipped) for HSH and
 the solver, the solver's normal error (mean angle, degrees) and its map errors (RMSE of
-diffuse, specular, roughness); then the means.
+diffuse, specular, roughness); then the same for the solver started from the shipped
+any-rig network's maps (``reconstruct --anyrig default``); then the means.
 
 Run by hand: .venv/bin/python bench/rti_dome.py [SIZE]   (default 128)
 """
@@ -35,6 +36,7 @@ from matscan.materials.photos import TINTS, photo_material
 from matscan.reconstruct import ReconstructConfig, reconstruct_capture
 from matscan.render import render_maps
 from matscan.rig import Camera, Light, Rig
+from matscan.weights import load_anyrig
 
 
 def ring(elevations, per_ring: int, offset_deg: float = 0.0) -> list[tuple[float, float, float]]:
@@ -70,6 +72,13 @@ def scores(pred: torch.Tensor, truth: torch.Tensor) -> tuple[float, float]:
     return 10 * math.log10(1 / float((a - b).square().mean())), float(ssim(a, b))
 
 
+def _line(name: str, r: list[float]) -> str:
+    def solver(a: list[float]) -> str:
+        return f"{a[0]:6.2f} {a[1]:6.3f} {a[2]:9.2f} {a[3]:8.4f} {a[4]:9.4f} {a[5]:6.3f}"
+
+    return f"{name:24s} {r[0]:9.2f} {r[1]:6.3f} {solver(r[2:8])}   {solver(r[8:14])}"
+
+
 def main() -> None:
     from _usage import usage  # bench/ is the script's folder, on sys.path
 
@@ -81,10 +90,10 @@ def main() -> None:
     train, test = rti_rig(TRAIN), rti_rig(TEST)
     rows = []
     t0 = time.perf_counter()
-    print(
-        f"{'material':24s} {'HSH PSNR':>9s} {'SSIM':>6s} {'solver PSNR':>12s} {'SSIM':>6s} {'normal °':>9s}"
-        f" {'diffuse':>8s} {'specular':>9s} {'rough':>6s}"
-    )
+    anyrig = load_anyrig("default")
+    solver = f"{'PSNR':>6s} {'SSIM':>6s} {'normal °':>9s} {'diffuse':>8s} {'specular':>9s} {'rough':>6s}"
+    print(f"{'':24s} {'HSH':>16s} {'solver from flat maps':>49s}   {'solver from the any-rig network':>49s}")
+    print(f"{'material':24s} {'PSNR':>9s} {'SSIM':>6s} {solver}   {solver}")
     for i, (name, maps) in enumerate(materials):
         photos = photos_of(maps, train, seed=i)
         cap = Capture(
@@ -102,25 +111,22 @@ def main() -> None:
         hsh = relight_hsh(coef, torch.tensor(TEST))
         hsh_psnr = 10 * math.log10(1 / float((hsh - linear_to_srgb(truth.clamp(0, 1))).square().mean()))
         hsh_ssim = float(ssim(hsh, linear_to_srgb(truth.clamp(0, 1))))
-        res = reconstruct_capture(cap, ReconstructConfig(model="none", refine="on"))
-        with torch.no_grad():
-            pred = render_maps(res.maps, test.light_set(), test.field_mm) * res.intensity_scale
-        psnr, s = scores(pred, truth)
-        cos = (res.maps.normal * maps.normal).sum(0).clamp(-1, 1)
-        normal_deg = float(torch.rad2deg(torch.acos(cos)).mean())
-        errs = [
-            float((getattr(res.maps, m) - getattr(maps, m)).square().mean().sqrt())
-            for m in ("diffuse", "specular", "roughness")
-        ]
-        rows.append((hsh_psnr, hsh_ssim, psnr, s, normal_deg, *errs))
-        print(
-            f"{name:24s} {hsh_psnr:9.2f} {hsh_ssim:6.3f} {psnr:12.2f} {s:6.3f} {normal_deg:9.2f}"
-            f" {errs[0]:8.4f} {errs[1]:9.4f} {errs[2]:6.3f}"
-        )
-    m = [sum(r[j] for r in rows) / len(rows) for j in range(8)]
-    print(
-        f"{'mean':24s} {m[0]:9.2f} {m[1]:6.3f} {m[2]:12.2f} {m[3]:6.3f} {m[4]:9.2f} {m[5]:8.4f} {m[6]:9.4f} {m[7]:6.3f}"
-    )
+        row: list[float] = [hsh_psnr, hsh_ssim]
+        for start in (None, anyrig):
+            res = reconstruct_capture(cap, ReconstructConfig(model="none", refine="on"), anyrig=start)
+            with torch.no_grad():
+                pred = render_maps(res.maps, test.light_set(), test.field_mm) * res.intensity_scale
+            psnr, s = scores(pred, truth)
+            cos = (res.maps.normal * maps.normal).sum(0).clamp(-1, 1)
+            normal_deg = float(torch.rad2deg(torch.acos(cos)).mean())
+            errs = [
+                float((getattr(res.maps, m) - getattr(maps, m)).square().mean().sqrt())
+                for m in ("diffuse", "specular", "roughness")
+            ]
+            row += [psnr, s, normal_deg, *errs]
+        rows.append(row)
+        print(_line(name, row))
+    print(_line("mean", [sum(r[j] for r in rows) / len(rows) for j in range(len(rows[0]))]))
     print(
         f"{len(rows)} materials at {size}², {len(TRAIN)} lights, {len(TEST)} test lights, "
         f"{time.perf_counter() - t0:.0f} s"
