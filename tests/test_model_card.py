@@ -81,3 +81,39 @@ def test_unlike_section_names_each_rise_of_a_map_error_with_more_lights():
     assert tool.unlike_rises(rows, ["1", "2", "3"]) == "roughness from 2 to 3 lights (0.120 → 0.130)"
     flat = [r | {"rmse_roughness": 0.1} for r in rows]
     assert tool.unlike_rises(flat, ["1", "2", "3"]) == "nowhere"
+
+
+def test_a_study_with_procedural_materials_gives_their_own_table_with_the_fit_and_novel_lights(tmp_path):
+    import json
+
+    tool = load_tool()
+
+    def row(material, lights, method, novel):
+        scores = {"rmse_diffuse": 0.05, "rmse_specular": 0.1, "rmse_roughness": 0.2, "normal_degrees": 3.0}
+        return (
+            {"material": material, "encoding": "srgb8", "lights": lights, "method": method}
+            | scores
+            | {"novel_rmse": novel}
+        )
+
+    rows = [
+        row("photo-a", "1", "nets", 0.05),
+        row("photo-a", "1", "fit", 0.06),
+        row("procedural-000-x", "1", "nets", 0.04),
+        row("procedural-000-x", "1", "fit", 0.03),
+        row("procedural-000-x", "1", "baseline", 0.07),
+        row("procedural-000-x", "1", "auto:other.safetensors", 0.01),  # candidates stay out of the card
+    ]
+    results = tmp_path / "results.json"
+    results.write_text(json.dumps({"rows": rows, "lights": ["1"]}))
+    weights = tmp_path / "w.safetensors"
+    weights.write_bytes(b"w")
+    text = "\n".join(tool.unlike_section(results, weights))
+    unlike, _, procedural = text.partition(tool.PROCEDURAL)
+    assert "| 1 | fit | 0.0500 | 0.1000 | 0.2000 | 3.0 | 0.0600 |" in unlike
+    assert "below the fit's at 1 of the 1 light counts (1)" in unlike
+    assert "| 1 | fit | 0.0500 | 0.1000 | 0.2000 | 3.0 | 0.0300 |" in procedural
+    assert "| 1 | baseline |" in procedural and "other.safetensors" not in text
+    # judged on its own rows: the fit relights the procedural material better
+    assert "below the fit's at no light count" in procedural and "below the baseline's at 1 of the 1" in procedural
+    assert "1 procedural materials (`procedural:1`" in procedural

@@ -42,6 +42,7 @@ from matscan.weights import ROOT, SHIPPED
 MAP_COLUMNS = ("rmse_diffuse", "rmse_specular", "rmse_roughness", "rmse_normal", "normal_degrees")
 CARD = Path("docs/model-card.md")
 UNLIKE = "## On materials unlike the training set"
+PROCEDURAL = "## On the study's procedural materials"
 UNLIKE_METHODS = ("nets", "baseline", "fit", "auto")
 UNLIKE_COLUMNS = ("rmse_diffuse", "rmse_specular", "rmse_roughness", "normal_degrees", "novel_rmse")
 
@@ -53,14 +54,18 @@ def sha256(path: Path) -> str:
 
 
 def unlike_section(results: Path, weights: Path) -> list[str]:
-    """The card's section on the study's texture-photograph and artist-style map sets."""
+    """The card's sections made from a study: the texture-photograph and artist-style map
+    sets (never trained on), then, where the study has them, its procedural materials
+    (the validation table's distribution, with the per-pixel fit and novel lights beside)."""
     doc = json.loads(results.read_text())
-    rows = [r for r in doc["rows"] if r["material"].startswith(("photo-", "artist-")) and r["encoding"] == "srgb8"]
-    materials = sorted({r["material"] for r in rows})
+    sha = sha256(weights)[:16]
+    rows = [r for r in doc["rows"] if r["encoding"] == "srgb8"]
+    unlike = [r for r in rows if r["material"].startswith(("photo-", "artist-"))]
+    materials = sorted({r["material"] for r in unlike})
     lines = [
         UNLIKE,
         "",
-        f"Weights SHA-256 `{sha256(weights)[:16]}`. {len(materials)} map sets that no network was trained on "
+        f"Weights SHA-256 `{sha}`. {len(materials)} map sets that no network was trained on "
         f"({', '.join(m for m in materials)}; `matscan/materials/photos.py` and `artist.py`, 256², "
         "docs/artist-materials.png), photographed by the virtual dome24 in 8-bit sRGB with noise under each "
         "Table 4 subset; mean over the map sets. `nets`: these networks alone; `baseline`: as above; `fit`: the "
@@ -68,33 +73,56 @@ def unlike_section(results: Path, weights: Path) -> list[str]:
         "`matscan reconstruct` does by default. `novel`: RMSE of renderings under 16 lights the rig does not "
         "have (docs/results.md).",
         "",
+        *study_table(unlike, doc["lights"]),
+    ]
+    procedural = [r for r in rows if r["material"].startswith("procedural-")]
+    if procedural:
+        names = sorted({r["material"] for r in procedural})
+        lines += [
+            PROCEDURAL,
+            "",
+            f"Weights SHA-256 `{sha}`. The same study's {len(names)} procedural materials (`procedural:{len(names)}`: "
+            "prior v1, the validation table's distribution, seeds 2^41 + i, never drawn in training; 256²), "
+            "photographed and scored as above: the per-pixel fit and the novel lights beside the networks on "
+            "the materials they were trained for.",
+            "",
+            *study_table(procedural, doc["lights"]),
+        ]
+    lines += [f"Both made with `.venv/bin/python tools/model_card.py --unlike {results}`.", ""]
+    return lines
+
+
+def study_table(rows: list[dict], lights: list[str]) -> list[str]:
+    """A study's rows as the card's table (mean over the map sets per count and method),
+    where the networks' map errors rise, and where their novel-light error is below the
+    baseline's and the fit's."""
+    lines = [
         "| lights | method | diffuse | specular | roughness | normal ° | novel |",
         "|---:|---|---:|---:|---:|---:|---:|",
     ]
     novel: dict[tuple[str, str], float] = {}
-    for lights in doc["lights"]:
+    for n in lights:
         for method in UNLIKE_METHODS:
-            sel = [r for r in rows if r["lights"] == lights and r["method"] == method]
+            sel = [r for r in rows if r["lights"] == n and r["method"] == method]
             if not sel:
                 continue
             means = [sum(r[c] for r in sel) / len(sel) for c in UNLIKE_COLUMNS]
-            novel[lights, method] = means[-1]
+            novel[n, method] = means[-1]
             lines.append(
-                f"| {lights} | {method} | "
+                f"| {n} | {method} | "
                 + " | ".join(
                     f"{v:.1f}" if c == "normal_degrees" else f"{v:.4f}"
                     for c, v in zip(UNLIKE_COLUMNS, means, strict=True)
                 )
                 + " |"
             )
-    lines += ["", "Where the networks' map errors rise as lights are added: " + unlike_rises(rows, doc["lights"]) + "."]
+    lines += ["", "Where the networks' map errors rise as lights are added: " + unlike_rises(rows, lights) + "."]
     for other in ("baseline", "fit"):
-        counts = [n for n in doc["lights"] if (n, "nets") in novel and (n, other) in novel]
+        counts = [n for n in lights if (n, "nets") in novel and (n, other) in novel]
         below = [n for n in counts if novel[n, "nets"] < novel[n, other]]
         where = f"{len(below)} of the {len(counts)} light counts ({', '.join(below)})" if below else "no light count"
         lines += ["", f"The networks' novel-light error is below the {other}'s at {where}."]
-    lines += ["", f"Made with `.venv/bin/python tools/model_card.py --unlike {results}`.", ""]
-    return lines
+    return [*lines, ""]
 
 
 def unlike_rises(rows: list[dict], lights: list[str]) -> str:
@@ -315,7 +343,9 @@ def main() -> int:
         ),
         "",
         "Steps of every run behind a network add up whatever their batch (4 in CPU runs, 32 in GPU runs; each "
-        "run's `config.json`).",
+        "run's `config.json`). Hardware: every CPU run on 2 CPU cores (no GPU); behind all four networks, two "
+        "short stages on one NVIDIA H100 (1,936 steps of batch 32 in 14 minutes, `runs/dome24-v2-gpu/README.md`), "
+        "continued on the CPU by `runs/dome24-mix-cpu`.",
         "",
         'The four networks are independent. With the paper\'s rendering loss (`render_with` "own") each has '
         "its own (one predicted map rendered with the other three true maps), so one network trained alone "
