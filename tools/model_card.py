@@ -383,7 +383,13 @@ def main() -> int:
             )
     lines += ["", *reading(table, net["photo_statistic"])]
     cmd = f"tools/model_card.py {run} {count}" + options
-    lines += ["", f"Scored in {seconds:.0f} s with `.venv/bin/python {cmd}`.", ""]
+    lines += [
+        "",
+        f"Scored in {seconds:.0f} s with `.venv/bin/python {cmd}`. Its 1-light networks row, and the 1-light "
+        "networks row of the table below, are reproduced by `MATSCAN_SLOW=1 .venv/bin/python -m pytest "
+        "tests/test_card_rows.py` (the second alone runs in `make test`).",
+        "",
+    ]
     lines += kept_unlike(old_card, weights)
     CARD.write_text("\n".join(lines))
     print("\n".join(lines[-len(table) * 2 - 4 :]))
