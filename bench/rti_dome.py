@@ -6,9 +6,10 @@ at the zenith) and an orthographic camera, as RTI domes are described by their .
 files; 20 test lights between them (5 on each ring at 20°, 40°, 60°, 80°, azimuths
 offset). Each material (the artist-style sets and the sets built from texture photos:
 ``matscan evaluate`` "photos" and "artist") is photographed under the 49 lights (8-bit
-sRGB, read noise 0.002) and reconstructed by the solver alone (no networks: they take
-dome24's slots); HSH (order 2, nine coefficients per pixel and channel) is fitted to the
-same photos. Both then predict the 20 test photos, which neither saw.
+sRGB, read noise 0.002) and reconstructed by the solver, from flat maps (the dome24
+networks take dome24's slots) and from the shipped any-rig network's maps; HSH (order 2,
+nine coefficients per pixel and channel) is fitted to the same photos. All three then
+predict the 20 test photos, which none saw.
 
 Printed per material: PSNR (dB) and SSIM of the test photos (sRGB, clipped) for HSH and
 the solver, the solver's normal error (mean angle, degrees) and its map errors (RMSE of

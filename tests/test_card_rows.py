@@ -3,7 +3,7 @@ weights: the procedural validation set's and the unlike sets' networks at one li
 (the cheapest row of each; the card gives the commands for the rest). A card whose
 unlike section is marked stale (weights changed, study not yet re-run) is not checked
 there: the mark already says it does not match. The validation row draws the card's 256
-materials (about 3 minutes on 2 cores), so it runs with MATSCAN_SLOW=1 only:
+materials (a few minutes on 2 cores), so it runs with MATSCAN_SLOW=1 only:
 
     MATSCAN_SLOW=1 .venv/bin/python -m pytest tests/test_card_rows.py
 """
@@ -31,11 +31,13 @@ def test_the_cards_procedural_validation_row_at_one_light_reproduces():
     from matscan.weights import load_model
 
     text = CARD.read_text()
-    count = int(re.search(r"Validation: (\d+) procedural materials", text).group(1))
+    found = re.search(r"Validation: (\d+) procedural materials .*?, (\d+)² crops", text)
+    assert found, "the card does not say how many validation materials, at what crop"
+    count, crop = int(found.group(1)), int(found.group(2))
     table = text.partition("## What it scores")[2].partition("## On materials unlike")[0]
     expected = card_row(table, "1", "nets")  # diffuse, specular, roughness, normal, normal °
     nets, _ = load_model("default")
-    got = subset_table(nets, "dome24", count=count, crop=128, subsets=["1"])["1"]["nets"]
+    got = subset_table(nets, "dome24", count=count, crop=crop, subsets=["1"])["1"]["nets"]
     ours = [got[k] for k in ("rmse_diffuse", "rmse_specular", "rmse_roughness", "rmse_normal")]
     assert ours == pytest.approx(expected[:4], abs=6e-5)  # printed to 4 decimals
     assert got["normal_degrees"] == pytest.approx(expected[4], abs=0.06)
@@ -53,7 +55,9 @@ def test_the_cards_unlike_row_at_one_light_reproduces():
     section = section.partition("\n## ")[0]
     if "**Stale" in section:
         pytest.skip("the card's unlike section is marked stale")
-    names = re.search(r"trained on \(([^;]+);", section).group(1).split(", ")
+    found = re.search(r"trained on \(([^;]+);", section)
+    assert found, "the card's unlike section does not name its map sets"
+    names = found.group(1).split(", ")
     expected = card_row(section, "1", "nets")  # diffuse, specular, roughness, normal °, novel
     nets, _ = load_model("default")
     rig = builtin_rig("dome24")

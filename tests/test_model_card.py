@@ -117,3 +117,24 @@ def test_a_study_with_procedural_materials_gives_their_own_table_with_the_fit_an
     # judged on its own rows: the fit relights the procedural material better
     assert "below the fit's at no light count" in procedural and "below the baseline's at 1 of the 1" in procedural
     assert "1 procedural materials (`procedural:1`" in procedural
+
+
+def test_both_study_sections_are_marked_stale_once_and_unmarked_for_their_own_weights(tmp_path):
+    tool = load_tool()
+    weights = tmp_path / "w.safetensors"
+    weights.write_bytes(b"new weights")
+    old = hashlib.sha256(b"old weights").hexdigest()[:16]
+    new = hashlib.sha256(b"new weights").hexdigest()[:16]
+
+    def two(sha: str) -> str:
+        proc = [tool.PROCEDURAL, "", f"Weights SHA-256 `{sha}`. Eight procedural.", "", "| 1 | 0.0500 |", ""]
+        return card_with(sha) + "\n".join(proc)
+
+    once = rewrite(tool, two(old), weights)
+    assert once.count(tool.STALE) == 2 and rewrite(tool, once, weights) == once
+    for heading in (tool.UNLIKE, tool.PROCEDURAL):
+        assert f"{heading}\n\n{tool.STALE}\n\nWeights SHA-256 `{old}`" in once
+    assert once.replace(tool.STALE + "\n\n", "") == two(old)
+    assert rewrite(tool, two(new), weights) == two(new)
+    marked = two(new).replace("\n\nWeights", f"\n\n{tool.STALE}\n\nWeights")
+    assert marked.count(tool.STALE) == 2 and rewrite(tool, marked, weights) == two(new)

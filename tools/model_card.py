@@ -84,11 +84,12 @@ def unlike_section(results: Path, weights: Path) -> list[str]:
             f"Weights SHA-256 `{sha}`. The same study's {len(names)} procedural materials (`procedural:{len(names)}`: "
             "prior v1, the validation table's distribution, seeds 2^41 + i, never drawn in training; 256²), "
             "photographed and scored as above: the per-pixel fit and the novel lights beside the networks on "
-            "the materials they were trained for.",
+            "the procedural families (the networks' training drew these and later priors' families).",
             "",
             *study_table(procedural, doc["lights"]),
         ]
-    lines += [f"Both made with `.venv/bin/python tools/model_card.py --unlike {results}`.", ""]
+    made = "Both made" if procedural else "Made"
+    lines += [f"{made} with `.venv/bin/python tools/model_card.py --unlike {results}`.", ""]
     return lines
 
 
@@ -158,16 +159,27 @@ STALE = "**Stale: made with earlier weights; re-run the study and `--unlike`.**"
 
 
 def kept_unlike(card: str, weights: Path) -> list[str]:
-    """The old card's unlike section, marked stale when it was made with other weights."""
+    """The old card's sections made from a study (the unlike sets', and the procedural
+    materials' where there), each marked stale when it was made with other weights."""
     _, found, tail = card.partition(UNLIKE)
     if not found:
         return []
-    section = (UNLIKE + tail).rstrip("\n").split("\n")
-    if section[2] == STALE:  # marked by an earlier rewrite: mark it once
-        del section[2:4]
-    if sha256(weights)[:16] not in section[2]:
-        section[2:2] = [STALE, ""]
-    return [*section, ""]
+    lines = (UNLIKE + tail).rstrip("\n").split("\n")
+    kept: list[str] = []
+    i = 0
+    while i < len(lines):
+        kept.append(lines[i])
+        if lines[i].startswith("## ") and i + 2 < len(lines):
+            start = i + 2
+            if lines[start] == STALE:  # marked by an earlier rewrite: mark it once
+                start += 2
+            kept.append(lines[i + 1])
+            if sha256(weights)[:16] not in lines[start]:
+                kept += [STALE, ""]
+            i = start
+            continue
+        i += 1
+    return [*kept, ""]
 
 
 def reading(table: dict, statistic: str) -> list[str]:
@@ -343,6 +355,7 @@ def main() -> int:
         ),
         "",
         "Steps of every run behind a network add up whatever their batch (4 in CPU runs, 32 in GPU runs; each "
+        # hand-kept: the weights' metadata records steps and hours per network, not the hardware
         "run's `config.json`). Hardware: every CPU run on 2 CPU cores (no GPU); behind all four networks, two "
         "short stages on one NVIDIA H100 (1,936 steps of batch 32 in 14 minutes, `runs/dome24-v2-gpu/README.md`), "
         "continued on the CPU by `runs/dome24-mix-cpu`.",
