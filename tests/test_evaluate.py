@@ -180,6 +180,29 @@ def test_hsh_with_falloff_relights_a_lambertian_plane_under_lights_at_other_dist
     torch.testing.assert_close(hsh_images(capture, novel), expected, atol=2e-5, rtol=1e-4)
 
 
+def test_hsh_leaves_saturated_pixels_out_of_its_fit():
+    # a photo clipped at full scale over part of the field, marked saturated as a capture
+    # marks it: the fit from the other photos is still exact there (and is not, read as is)
+    from dataclasses import replace
+
+    from matscan.evaluate import evaluation_lights, hsh_images
+    from matscan.render import flat_irradiance, surface_points
+    from matscan.rig import builtin_rig
+
+    size = 12
+    rho = torch.full((3, size, size), 0.5)
+    capture = _lambertian_capture(rho, builtin_rig("dome24").subsets["24"], size)
+    clipped = capture.images.clone()
+    clipped[5, :, :6] = 1.0
+    marked = capture.saturated.clone()
+    marked[5, :, :6] = True
+    novel = evaluation_lights(capture.rig)
+    expected = (rho * flat_irradiance(novel, surface_points(capture.field_mm, (size, size)))).clamp(0, 1)
+    torch.testing.assert_close(hsh_images(replace(capture, images=clipped, saturated=marked), novel), expected)
+    unmarked = hsh_images(replace(capture, images=clipped), novel)
+    assert float((unmarked - expected).abs().max()) > 0.01
+
+
 def _directions_to(positions: torch.Tensor, size: int, field_mm: float = 120.0) -> torch.Tensor:
     """Unit vectors (L, H, W, 3) from each pixel centre to each point light, written out
     from design.md's frame: x = (j + 0.5)/W·width − width/2, y = height/2 − (i + 0.5)/H·height."""
