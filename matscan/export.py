@@ -460,12 +460,13 @@ def export_maps(
     from matscan import __version__
     from matscan.jsonfile import check_vector, dumps
     from matscan.mapset import CONVENTIONS
-    from matscan.materials.library import read_any
+    from matscan.materials.library import check_normal_convention, read_any
     from matscan.outputs import OUTPUT_FORMAT, RECORD, claim_output
     from matscan.rig import resolve_rig
     from matscan.samples import maps_folder
 
     t0 = time.perf_counter()
+    check_normal_convention(normal_convention)
     source = maps_folder(maps)
     if field_mm is not None:
         field = check_vector(list(field_mm), 2, "field_mm", FIELD_LIMITS_MM[0], FIELD_LIMITS_MM[1])

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from matscan.atomic import write_text
 from matscan.color import linear_to_srgb, srgb_to_linear
 from matscan.errors import MatscanError, input_error
 from matscan.imagefile import REC709_CHROMATICITIES, read_image, write_image
@@ -372,4 +373,4 @@ def write_maps(
             colourspace = "srgb" if spec.encoding == "srgb" else "linear"
             write_image(folder / file, data.permute(1, 2, 0).numpy(), bits=bits, colourspace=colourspace)
         meta["files"][name] = {"file": file, "bits": bits}
-    (folder / "mapset.json").write_text(dumps(meta, "mapset.json"), encoding="utf-8")
+    write_text(folder / "mapset.json", dumps(meta, "mapset.json"))

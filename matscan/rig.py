@@ -188,8 +188,7 @@ class Rig:
 
     def light_set(self, indices: Sequence[int] | None = None, dtype: torch.dtype = torch.float32) -> LightSet:
         """The renderer's view of some of this rig's lights (all by default)."""
-        if indices is None:
-            indices = range(len(self.lights))
+        indices = range(len(self.lights)) if indices is None else self.subset(indices)
         chosen = [self.lights[i] for i in indices]
         r = self.reference_distance_mm
         return LightSet.from_lights(chosen, self.camera.point(r), r, dtype, self.camera_w)

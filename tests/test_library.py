@@ -115,3 +115,15 @@ def test_a_matscan_mapset_missing_a_map_says_which(tmp_path):
     (tmp_path / "ours" / "normal.png").unlink()
     with pytest.raises(MatscanError, match=r"ours: no normal map \(expected normal.png"):
         read_any(tmp_path / "ours")
+
+
+def test_an_unknown_normal_convention_is_refused_whatever_the_layout(tmp_path):
+    # it used to be checked only where a library folder's normal map was read
+    from matscan.export import export_maps
+
+    folder = write_mapset(tmp_path / "set", random_maps(8))
+    with pytest.raises(MatscanError, match="normal_convention: 'x' is not one of auto, opengl, directx"):
+        read_any(folder, normal_convention="x")
+    with pytest.raises(MatscanError, match="normal_convention: 'x'"):
+        export_maps(folder, tmp_path / "out", normal_convention="x")
+    assert not (tmp_path / "out").exists()

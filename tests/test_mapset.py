@@ -153,3 +153,25 @@ def test_library_float_maps_are_checked_as_matscans(tmp_path):
     write_image(lib / "Rock01_Roughness.exr", np.full((8, 8, 1), 1e9, np.float32), bits=32)
     with pytest.raises(MatscanError, match=r"Rock01_Roughness\.exr: holds values from 1e\+09 to 1e\+09"):
         read_map_folder(lib)
+
+
+def test_write_maps_never_leaves_a_torn_mapset_json(tmp_path, monkeypatch):
+    # a write that breaks half way (disk full, a kill) leaves the old mapset.json whole
+    from pathlib import Path
+
+    from matscan.mapset import write_maps
+
+    folder = write_mapset(tmp_path / "set", random_maps(8, 0))
+    before = (folder / "mapset.json").read_text(encoding="utf-8")
+    real = Path.write_text
+
+    def torn(self, text, *args, **kwargs):
+        real(self, text[: len(text) // 2], *args, **kwargs)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", torn)
+    with pytest.raises((OSError, MatscanError)):  # MatscanError: the one line the commands print
+        write_maps(folder, random_maps(8, 1))
+    monkeypatch.undo()
+    assert (folder / "mapset.json").read_text(encoding="utf-8") == before
+    json.loads(before)

@@ -62,6 +62,21 @@ def test_bad_subsets(spec, words):
         builtin_rig("dome24").subset(spec)
 
 
+@pytest.mark.parametrize("indices, words", [([99], "index 99"), ([-1], "index -1"), ([3, 3], "twice")])
+def test_light_set_and_simulate_check_their_lights(tmp_path, indices, words):
+    # -1 would pick the last light, 99 fall off the list, a repeat render one LED twice
+    from conftest import random_maps
+
+    from matscan.capture.virtual import simulate
+
+    rig = builtin_rig("dome24")
+    with pytest.raises(MatscanError, match=words):
+        rig.light_set(indices)
+    with pytest.raises(MatscanError, match=words):
+        simulate(random_maps(8), rig, tmp_path / "cap", lights=indices)
+    assert not (tmp_path / "cap").exists()
+
+
 def test_json_round_trip(tmp_path):
     for name in ("dome24", "flash"):
         rig = builtin_rig(name)

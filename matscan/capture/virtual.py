@@ -230,7 +230,7 @@ def _simulate(
         )
         indices = None
     else:
-        indices = list(rig.subset(None) if lights is None else lights)
+        indices = list(rig.subset(lights))
         light_set = rig.light_set(indices)
     images = simulate_images(maps, light_set, rig.field_mm, camera, seed, progress)
     backlight = simulate_backlight(maps, camera, seed) if rig.backlight and maps.alpha is not None else None

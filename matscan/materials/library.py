@@ -118,6 +118,17 @@ def _normal(path: Path, directx: bool) -> Tensor:
     return normalize_normals(n)
 
 
+#: How a library folder's normal map may be encoded (:func:`read_map_folder`).
+NORMAL_CONVENTIONS = ("auto", "opengl", "directx")
+
+
+def check_normal_convention(value: str) -> str:
+    """``value`` if it is one of :data:`NORMAL_CONVENTIONS`; else a MatscanError."""
+    if value not in NORMAL_CONVENTIONS:
+        raise MatscanError(f"normal_convention: {value!r} is not one of {', '.join(NORMAL_CONVENTIONS)}")
+    return value
+
+
 def read_map_folder(folder: str | Path, normal_convention: str = "auto") -> MapSet:
     """Read a folder of maps from a public PBR library (see module doc).
 
@@ -125,8 +136,7 @@ def read_map_folder(folder: str | Path, normal_convention: str = "auto") -> MapS
     ``"opengl"`` or ``"directx"``.
     """
     folder = Path(folder)
-    if normal_convention not in ("auto", "opengl", "directx"):
-        raise MatscanError(f"normal_convention: {normal_convention!r} is not one of auto, opengl, directx")
+    check_normal_convention(normal_convention)
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in READABLE)
     found: dict[str, list[Path]] = {}
     for p in files:
@@ -200,6 +210,7 @@ def read_deschaintre(path: str | Path) -> MapSet:
 
 def read_any(path: str | Path, normal_convention: str = "auto") -> MapSet:
     """Read a map set in any layout this module knows (see module doc)."""
+    check_normal_convention(normal_convention)
     path = Path(path)
     if path.is_file():
         return read_deschaintre(path)

@@ -194,8 +194,8 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     n = len(capture.files)
     if n < MIN_PHOTOS:
         raise MatscanError(
-            f"--self-calibrate (which --self-calibrate-positions, --shared-f0, --own-f0 and --led-gradient "
-            f"imply): needs at least {MIN_PHOTOS} photos to tell the lights from the maps, the capture has {n}"
+            f"--self-calibrate (which --self-calibrate-positions, --shared-f0 and --own-f0 imply): needs at "
+            f"least {MIN_PHOTOS} photos to tell the lights from the maps, the capture has {n}"
         )
     h, w = capture.size
     factor = max(1, math.ceil(max(h, w) / ROUND_SIDE))
