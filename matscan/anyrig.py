@@ -44,7 +44,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from matscan.errors import MatscanError
+from matscan.errors import MatscanError, input_error
 from matscan.mapset import MapSet
 from matscan.nets import IRRADIANCE_FLOOR, LOG_SCALE, OUT_CHANNELS
 from matscan.render import flat_irradiance
@@ -522,13 +522,18 @@ def train(
     network to ship). A new run's network is ``net_cfg`` (default
     :class:`AnyRigConfig`); a resumed run keeps the checkpoint's, and a ``net_cfg`` that
     differs from it is an error, as is resuming a run that keeps an average without one."""
-    from safetensors.torch import load_file, save_file
+    from safetensors.torch import save_file
     from tqdm import tqdm
 
     from matscan.atomic import atomic_file, write_text
     from matscan.materials.procedural import check_prior
 
     check_prior(cfg.prior)
+    if cfg.size < 8 or cfg.size % 4 or cfg.batch < 1:
+        raise MatscanError(
+            f"--size, --batch: {cfg.size!r}, {cfg.batch!r} must be a crop of 8 pixels or more, a multiple of 4, "
+            "and at least one sample a step"
+        )
     if not 0 <= cfg.ema < 1:
         raise MatscanError(f"--ema: {cfg.ema!r} must be a decay per step in [0, 1)")
     if not 0 <= cfg.miscal_degrees <= 45 or not 0 <= cfg.miscal_intensity <= 1:
@@ -547,20 +552,25 @@ def train(
             f"--render-weight, --render-lights: {cfg.render_weight!r}, {cfg.render_lights!r} must be a weight in "
             "[0, 100) and 1 to 64 lights"
         )
+    from matscan.outputs import check_run_folder
+    from matscan.train import resolve_device
+
     library = read_library(cfg.library)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = torch.device(
-        "cuda"
-        if cfg.device == "auto" and torch.cuda.is_available()
-        else ("cpu" if cfg.device == "auto" else cfg.device)
-    )
+    check_run_folder(out, cfg.library, (CHECKPOINT, "log.csv", WEIGHTS))
+    if (out / "config.json").is_file():  # rewritten at each start: it must be a run's of this kind
+        from matscan.jsonfile import read_json
+
+        kept = read_json(out / "config.json")
+        if not (isinstance(kept, dict) and {"train", "net"} <= set(kept)):
+            raise input_error(out / "config.json", "is not a train-anyrig run's config; choose another --out")
+    device = resolve_device(cfg.device)
     step = 0
     ckpt = out / CHECKPOINT
     state = None
     averaged: dict[str, Tensor] = {}
     if ckpt.exists():
-        state, averaged = _split_ema(load_file(ckpt))
+        state, averaged = _split_ema(_read_checkpoint(ckpt))
         step = int(state.pop("step").item())
         if averaged and not cfg.ema:
             raise MatscanError(f"{ckpt}: the run keeps its weights' moving average; resume it with --ema DECAY")
@@ -570,7 +580,10 @@ def train(
         net_cfg = found
     net = AnyRigNet(net_cfg or AnyRigConfig()).to(device)
     if state is not None:
-        net.load_state_dict(state)
+        try:
+            net.load_state_dict(state)
+        except RuntimeError:
+            raise input_error(ckpt, "is not an any-rig network's checkpoint (its tensors do not fit)") from None
     ema = None
     if cfg.ema > 0:
         ema = {k: v.detach().clone() for k, v in net.state_dict().items()}
@@ -584,6 +597,7 @@ def train(
         with atomic_file(ckpt) as tmp:  # a run killed while writing keeps its last checkpoint
             save_file({**tensors, "step": torch.tensor(step)}, tmp)
 
+    out.mkdir(parents=True, exist_ok=True)
     write_text(out / "config.json", json.dumps({"train": asdict(cfg), "net": asdict(net.cfg)}, indent=1))
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
@@ -623,6 +637,20 @@ def train(
     return {"steps": step, "checkpoint": str(ckpt), "weights": str(out / WEIGHTS)}
 
 
+def _read_checkpoint(path: Path) -> dict[str, Tensor]:
+    """A train-anyrig checkpoint's tensors; a file that is not one is a one-line error."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    try:
+        state = load_file(path)
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise input_error(path, f"is not a readable safetensors file ({str(exc).splitlines()[0][:120]})") from None
+    if "step" not in state or state["step"].numel() != 1:
+        raise input_error(path, "is not a train-anyrig checkpoint (no step); give the run a new folder")
+    return state
+
+
 def config_of(state: dict[str, Tensor]) -> AnyRigConfig:
     """The :class:`AnyRigConfig` a state dict was made with, from its tensors' shapes."""
     enc = state.get("enc1.0.weight")
@@ -639,8 +667,6 @@ def load(path: str | Path, averaged: bool = True) -> AnyRigNet:
     one is a one-line error naming it."""
     from safetensors import SafetensorError
     from safetensors.torch import load_file
-
-    from matscan.errors import input_error
 
     try:
         state = load_file(path)

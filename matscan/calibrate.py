@@ -752,7 +752,7 @@ def calibrate(
         raise MatscanError(f"chart_encoding: {chart_encoding!r} is not one of {', '.join(CHART_ENCODINGS)}")
     grey = capture_folder(grey) if grey is not None else None
     inputs = ([Path(chart)] if chart is not None else []) + (capture_inputs(grey) if grey is not None else [])
-    with claim_output(out, "calibrate", inputs, kind="file", overwrite=overwrite) as claim:
+    with claim_output(out, "calibrate", inputs, kind="file", overwrite=overwrite, suffixes=(".json",)) as claim:
         if flat_fields and grey is not None:  # the flat-field files beside it are outputs too
             for flat in sorted(claim.path.parent.glob("flat_*.exr")):
                 check_destination(flat, inputs, "file", overwrite)
@@ -1034,7 +1034,7 @@ def merge(out: str | Path, files: Sequence[str | Path], overwrite: bool = False)
 
     paths = [Path(f) for f in files]
     inputs = [p for path in paths for p in calibration_inputs(path)]
-    with claim_output(out, "calibrate", inputs, kind="file", overwrite=overwrite) as claim:
+    with claim_output(out, "calibrate", inputs, kind="file", overwrite=overwrite, suffixes=(".json",)) as claim:
         documents = [read_json(p) for p in paths]
         result = merge_calibrations(documents, [str(p) for p in paths])
         flats = result.document.get("flat_fields")

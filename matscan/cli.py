@@ -301,7 +301,7 @@ def _procedural_count(spec: str) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> str:
-    from matscan.evaluate import check_methods, evaluate_to_folder
+    from matscan.evaluate import check_methods, evaluate_to_folder, method_inputs
     from matscan.materials.artist import ARTIST_NAMES, artist_material
     from matscan.materials.library import read_any
     from matscan.materials.photos import photo_material
@@ -315,7 +315,9 @@ def cmd_evaluate(args: argparse.Namespace) -> str:
     counts = {spec: _procedural_count(spec) for spec in args.mapsets if spec.startswith("procedural:")}
     inputs = [_maps_arg(spec) for spec in args.mapsets if spec not in counts and spec not in SETS]
     # the output first, before any material is made (evaluate_to_folder checks it again, locked)
-    check_destination(args.out, inputs, "folder", args.overwrite, args.overwrite_any, command="evaluate")
+    check_destination(
+        args.out, [*inputs, *method_inputs(methods)], "folder", args.overwrite, args.overwrite_any, command="evaluate"
+    )
     materials = []
     for spec in args.mapsets:
         if spec in counts:
@@ -403,7 +405,7 @@ def cmd_sheet(args: argparse.Namespace) -> str:
 
     source = _capture_arg(args.folder)
     inputs = capture_inputs(source) + (capture_inputs(_maps_arg(args.maps)) if args.maps else [])
-    with claim_output(args.out, "sheet", inputs, kind="file", overwrite=args.overwrite):
+    with claim_output(args.out, "sheet", inputs, kind="file", overwrite=args.overwrite, suffixes=(".png",)):
         return _sheet(args, source)
 
 
@@ -476,7 +478,7 @@ def cmd_rig_from_lp(args: argparse.Namespace) -> str:
     field = _vector(args.field_mm, 2, "--field-mm") if args.field_mm else (RTI_FIELD_WIDTH_MM, RTI_FIELD_WIDTH_MM)
     if min(field) <= 0:
         raise MatscanError(f"--field-mm: {args.field_mm!r} must be two positive sizes (width, height) in mm")
-    with claim_output(args.out, "rig from-lp", [args.lp], kind="file", overwrite=args.overwrite):
+    with claim_output(args.out, "rig from-lp", [args.lp], kind="file", overwrite=args.overwrite, suffixes=(".json",)):
         lights = read_lp(args.lp, args.y)
         for warning in lights.warnings:
             print(f"matscan: warning: {warning}", file=sys.stderr)
@@ -509,7 +511,7 @@ def cmd_rig_to_lp(args: argparse.Namespace) -> str:
     else:
         rig = resolve_rig(args.rig)
         inputs = [args.rig] if str(args.rig).endswith(".json") else []
-    with claim_output(args.out, "rig to-lp", inputs, kind="file", overwrite=args.overwrite):
+    with claim_output(args.out, "rig to-lp", inputs, kind="file", overwrite=args.overwrite, suffixes=(".lp",)):
         write_text(args.out, lp_text(rig, files, y=args.y))
     kinds = sum(lt.directional for lt in rig.lights)
     note = "" if kinds == len(rig.lights) else " (point lights written as directions from the field's centre)"
@@ -613,7 +615,9 @@ def cmd_rig_from_spheres(args: argparse.Namespace) -> str:
             "or one with --dome-radius (the lights on a shell of known radius)"
         )
     folder = capture_folder(args.capture)
-    with claim_output(args.out, "rig from-spheres", capture_inputs(folder), kind="file", overwrite=args.overwrite):
+    with claim_output(
+        args.out, "rig from-spheres", capture_inputs(folder), kind="file", overwrite=args.overwrite, suffixes=(".json",)
+    ):
         rig, spreads = rig_from_spheres(load_capture(folder), spheres, dome)
         write_text(args.out, dumps(rig_to_dict(rig), str(args.out)))
     worst = max(spreads.values(), default=0.0)
@@ -822,7 +826,7 @@ TRAIN_EMA = 0.999
 
 def cmd_train(args: argparse.Namespace) -> str:
 
-    from matscan.train import TrainConfig, train
+    from matscan.train import TrainConfig, check_train_config, train
 
     values = {}
     if args.config:
@@ -832,6 +836,7 @@ def cmd_train(args: argparse.Namespace) -> str:
         values = read_json(path)
         if not isinstance(values, dict):
             raise MatscanError(f"{path}: expected a JSON object of training settings")
+        check_train_config(values, str(path))  # each setting's type, named in the file
     for key in (
         "preset",
         "variant",

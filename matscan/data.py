@@ -347,7 +347,11 @@ def synthesize(
     indices = the_rig.subset(lights)
     show = indices[min(len(indices) - 1, len(indices) * 3 // 4)]
     tiles = []
-    with claim_output(out, "synth", overwrite=overwrite, overwrite_any=overwrite_any) as claim, claim.folder() as tmp:
+    inputs = [Path(rig)] if str(rig).endswith(".json") else []  # a rig file is an input, never overwritten
+    with (
+        claim_output(out, "synth", inputs, overwrite=overwrite, overwrite_any=overwrite_any) as claim,
+        claim.folder() as tmp,
+    ):
         for i in tqdm(range(count), desc="synth", unit="material", disable=not progress):
             if family is None:
                 fam, maps = random_material(size, seed * 100_003 + i)

@@ -240,6 +240,14 @@ def check_methods(
                 raise MatscanError(f"methods: {method}: no such weights file {path}")
 
 
+def method_inputs(methods: Sequence[str]) -> list[Path]:
+    """The weights files that ``methods`` read (``nets:FILE`` and the like): inputs,
+    which the study's output must never overwrite."""
+    from matscan.weights import model_path
+
+    return [model_path(path) for method in methods if (path := method.partition(":")[2])]
+
+
 #: Networks loaded in this process, by weights name or path.
 _NETS_CACHE: dict = {}
 
@@ -514,11 +522,12 @@ def evaluate_to_folder(
     """``matscan evaluate``: run the study and write results.json, results.md and plots.
 
     ``out`` is checked and locked before the study (never one of ``inputs``, the map
-    set folders read)."""
+    set folders read, nor a weights file that ``methods`` name)."""
     from matscan.jsonfile import dumps, finite_or_null
     from matscan.outputs import claim_output
 
     check_methods(methods, encodings, lights)
+    inputs = [*inputs, *method_inputs(methods)]
     with claim_output(out, "evaluate", inputs, overwrite=overwrite, overwrite_any=overwrite_any) as claim:
         t0 = time.perf_counter()
         rows = run_study(materials, "dome24", lights, methods, encodings, refine_steps, progress=progress, jobs=jobs)

@@ -320,6 +320,35 @@ def check_place(out: str | Path, inputs: Iterable[str | Path] = (), flag: str = 
     return given, path
 
 
+def check_run_folder(
+    run: str | Path, inputs: Iterable[str | Path] = (), files: Iterable[str] = (), flag: str = "--out"
+) -> Path:
+    """Where a training run may write (``matscan train``, ``train-anyrig``), checked before
+    anything is written: :func:`check_place`'s checks, not a capture or a map set nor in a
+    capture, and no file of a run's (``config.json`` and ``files``) that is not a run's: a
+    run adds and rewrites its own files in place (to resume), so a folder holding one of
+    those names without a run's ``config.json`` is refused rather than written over
+    (other files beside a run, its notes, are left alone). Returns the path resolved."""
+    given, path = check_place(run, inputs, flag)
+    if (holder := capture_above(path)) is not None:
+        raise input_error(given, f"lies in the capture {holder}; matscan never writes into a capture")
+    if path.exists():
+        if not path.is_dir():
+            raise input_error(given, "exists and is not a folder")
+        for name, what in (("capture.json", "a capture"), ("mapset.json", "a map set")):
+            if (path / name).is_file():
+                raise input_error(given, f"is {what} folder; a training run needs a folder of its own ({flag})")
+        if not (path / "config.json").is_file():
+            found = [name for name in files if (path / name).exists()]
+            if found:
+                raise input_error(
+                    given,
+                    f"holds {found[0]} but no training run (its config.json); matscan never writes over it "
+                    f"(choose another {flag})",
+                )
+    return path
+
+
 def check_destination(
     out: str | Path,
     inputs: Iterable[str | Path] = (),
@@ -452,9 +481,13 @@ def claim_output(
     overwrite: bool = False,
     overwrite_any: bool = False,
     flag: str = "--out",
+    suffixes: tuple[str, ...] = (),
 ) -> Iterator[OutputClaim]:
-    """Check ``out`` (:func:`check_destination`), lock it, clear stale temporaries,
-    and yield an :class:`OutputClaim` for the rest of the command."""
+    """Check ``out`` (:func:`check_destination`; and, where ``suffixes`` are given, that
+    its name ends in one of them, as the file the command writes must), lock it, clear
+    stale temporaries, and yield an :class:`OutputClaim` for the rest of the command."""
+    if suffixes and Path(out).suffix.lower() not in suffixes:
+        raise MatscanError(f"{flag}: {out}: {command} writes a {' or '.join(suffixes)} file; name it so")
     resolved = _resolve(Path(out))
     if held(resolved) and resolved in _ACTIVE:  # claimed earlier in this command, checked then: the same claim
         with output_lock(resolved):

@@ -567,6 +567,8 @@ def _subsets(raw: Any, n_lights: int, where: str) -> dict[str, tuple[int, ...]]:
         sw = f"{where}: subsets[{key!r}]"
         if not isinstance(members, (list, tuple)):
             raise MatscanError(f"{sw}: expected a list of light indices")
+        if not members:
+            raise MatscanError(f"{sw}: names no light (a subset lists one light or more)")
         idx = []
         for m in members:
             if not isinstance(m, int) or isinstance(m, bool) or not 0 <= m < n_lights:

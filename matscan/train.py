@@ -79,6 +79,7 @@ from matscan.jsonfile import (
     check_object,
     check_string,
     loads_text,
+    read_json,
     short_repr,
 )
 from matscan.losses import LAMBDA_MAP, LAMBDA_RENDER, map_loss, novel_lights, rendering_loss, truth_rendering
@@ -230,10 +231,10 @@ def _config_of(meta: dict[str, str], path: Path) -> TrainConfig:
     if not meta.get(key):
         raise input_error(path, "not a matscan weights file (no training config in its metadata)")
     where = f"{path}: {key}"
-    return _check_train_config(loads_text(meta[key], where), where)
+    return check_train_config(loads_text(meta[key], where), where)
 
 
-def _check_train_config(data: Any, where: str) -> TrainConfig:
+def check_train_config(data: Any, where: str) -> TrainConfig:
     """A :class:`TrainConfig` from its stored JSON object, every field checked by type
     (and the ones that shape the networks by value)."""
     obj = dict(check_object(data, where, {f.name: False for f in fields(TrainConfig)}))
@@ -245,6 +246,9 @@ def _check_train_config(data: Any, where: str) -> TrainConfig:
             obj[f.name] = _check_maps(v, w)
         elif f.name in ("preset", "variant"):
             check_string(v, w, tuple(PRESETS) if f.name == "preset" else VARIANTS)
+        elif f.name == "library":
+            if not isinstance(v, (list, tuple)) or not all(isinstance(x, str) for x in v):
+                raise MatscanError(f"{w}: expected a list of map set folders, got {short_repr(v)}")
         elif f.name == "rig":  # the networks' input width is its light count
             try:
                 resolve_rig(check_string(v, w))
@@ -253,6 +257,25 @@ def _check_train_config(data: Any, where: str) -> TrainConfig:
         else:  # other fields: the JSON type of their default
             _check_like(f.default, v, w)
     return TrainConfig.from_dict(obj, where)
+
+
+#: The least value of each counted or sized training setting (the command line's bounds).
+LEAST = {"crop": 16, "batch": 1, "steps": 1, "render_lights": 1, "val_every": 0, "val_count": 1, "log_every": 1}
+
+
+def check_values(cfg: TrainConfig) -> None:
+    """Settings within their ranges (the types are :func:`check_train_config`'s)."""
+    for name, least in LEAST.items():
+        if getattr(cfg, name) < least:
+            raise MatscanError(f"{name}: {getattr(cfg, name)!r} must be at least {least}")
+    if not 0 <= cfg.seed < 2**31:
+        raise MatscanError(f"seed: {cfg.seed!r} must be in [0, 2^31)")
+    for name in ("lr", "checkpoint_minutes", "grad_clip"):
+        if not 0 < getattr(cfg, name) < math.inf:
+            raise MatscanError(f"{name}: {getattr(cfg, name)!r} must be a positive number")
+    for name in ("lambda_map", "lambda_render"):
+        if not 0 <= getattr(cfg, name) < math.inf:
+            raise MatscanError(f"{name}: {getattr(cfg, name)!r} must be a number at least 0")
 
 
 def _check_like(default: Any, value: Any, where: str) -> None:
@@ -347,16 +370,21 @@ def load_checkpoint(
     except RuntimeError as exc:
         raise input_error(path, f"weights do not fit this network ({str(exc).splitlines()[0]})") from None
     if opt is not None:
-        adam_steps = json.loads(meta["adam_steps"])
+        if "adam_steps" not in meta:
+            raise input_error(path, "holds weights but no optimiser state, so no run resumes from it (use it as init)")
+        adam_steps = loads_text(meta["adam_steps"], f"{path}: adam_steps")
         state = opt.state_dict()
-        for pid_str, st in adam_steps.items():
-            pid = int(pid_str)
-            state["state"][pid] = {
-                "step": torch.tensor(st),
-                "exp_avg": tensors[f"opt.{pid}.exp_avg"],
-                "exp_avg_sq": tensors[f"opt.{pid}.exp_avg_sq"],
-            }
-        opt.load_state_dict(state)
+        try:
+            for pid_str, st in adam_steps.items():
+                pid = int(pid_str)
+                state["state"][pid] = {
+                    "step": torch.tensor(st),
+                    "exp_avg": tensors[f"opt.{pid}.exp_avg"],
+                    "exp_avg_sq": tensors[f"opt.{pid}.exp_avg_sq"],
+                }
+            opt.load_state_dict(state)
+        except (KeyError, ValueError, TypeError, AttributeError) as exc:
+            raise input_error(path, f"its optimiser state is damaged ({short_repr(str(exc))})") from None
     return int(meta.get("step", 0)), float(meta.get("elapsed_seconds", 0)), meta
 
 
@@ -556,7 +584,11 @@ def train(
     """
     from tqdm import tqdm
 
+    from matscan.outputs import check_run_folder
+
     run = Path(run)
+    check_values(cfg)
+    check_run_folder(run, cfg.library, (CHECKPOINT, "log.csv", "val.csv", SNAPSHOTS))
     rank, world = _dist_info()
     device = resolve_device(cfg.device, int(os.environ.get("LOCAL_RANK", "0")))
     if device.type == "cuda":
@@ -577,8 +609,10 @@ def train(
     config_path = run / "config.json"
     ckpt = run / CHECKPOINT
     init = Path(cfg.init) if cfg.init else None
-    if init is not None and not ckpt.is_file() and not init.is_file():
-        raise input_error(init, "no such weights file to start the run from (init)")
+    if init is not None and not ckpt.is_file():
+        if not init.is_file():
+            raise input_error(init, "no such weights file to start the run from (init)")
+        _config_of(_metadata(init), init)  # a damaged or foreign file: refused before the run folder is made
     # a resumed run keeps the network config it started with
     start_meta = _metadata(ckpt) if ckpt.is_file() else {}
     nets = build_nets(cfg, net_config_of(start_meta, cfg) if start_meta else None).to(device)  # init on the CPU
@@ -587,7 +621,7 @@ def train(
     if rank == 0:
         run.mkdir(parents=True, exist_ok=True)
         if config_path.is_file():
-            saved = TrainConfig.from_dict(json.loads(config_path.read_text()), str(config_path))
+            saved = check_train_config(read_json(config_path), str(config_path))
             diff = [
                 f.name
                 for f in fields(cfg)
@@ -599,8 +633,6 @@ def train(
                     f"holds a run with another config (differs in {', '.join(diff)}); "
                     "use another folder, or the same settings to resume",
                 )
-        else:
-            write_text(config_path, json.dumps(asdict(cfg), indent=2) + "\n")
     if world > 1:
         torch.distributed.barrier()
     init_record: dict[str, str] = {}
@@ -619,6 +651,8 @@ def train(
             "init_photo_statistic": net_config_of(init_meta, init_cfg).photo_statistic,
             "init_networks": json.dumps({m: r for m, r in training_record(init_meta).items() if m in cfg.maps}),
         }
+    if rank == 0 and not config_path.is_file():  # written once the weights it names have loaded
+        write_text(config_path, json.dumps(asdict(cfg), indent=2) + "\n")
     sample_offset = int(init_record.get("init_step", 0))  # the samples the init weights saw are skipped
     ema = None
     if cfg.ema and rank == 0:  # from the checkpoint's own average, else from the weights now

@@ -741,3 +741,127 @@ def test_the_largest_seed_is_one_every_command_can_use(tmp_path, capsys, family)
     # synth derives seed × 100003 + i, training (seed × 1000003 + i) × 7 + 3: within 2^63 − 1
     argv = ["synth", "--out", str(tmp_path / "s"), "--count", "2", "--size", "8", "--seed", str(2**31 - 1)]
     assert main([*argv, *(["--family", family] if family else [])]) == 0, capsys.readouterr().err
+
+
+# --- inputs named by options, file kinds, training run folders ------------------------------
+
+
+def _rig_file(path: Path) -> Path:
+    from matscan.jsonfile import dumps
+    from matscan.rig import rig_to_dict
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(dumps(rig_to_dict(builtin_rig("dome24")), str(path)))
+    return path
+
+
+def test_synth_never_deletes_its_rig_file(tmp_path, capsys):
+    # --overwrite --overwrite-any replaced the folder, the --rig file in it too
+    rig = _rig_file(tmp_path / "d" / "rig.json")
+    argv = ["synth", "--rig", str(rig), "--out", str(tmp_path / "d"), "--count", "1", "--size", "16", "--lights", "6"]
+    assert_refused([*argv, "--overwrite", "--overwrite-any"], capsys, tmp_path / "d", "contains the input")
+
+
+def test_evaluate_never_deletes_the_weights_its_methods_name(tmp_path, capsys):
+    import shutil
+
+    w = tmp_path / "w"
+    w.mkdir()
+    shutil.copy(ROOT / "matscan" / "weights" / "dome24-cpu.safetensors", w / "mine.safetensors")
+    argv = ["evaluate", "artist", "--methods", f"nets:{w / 'mine.safetensors'}", "--lights", "6", "--size", "16"]
+    assert_refused([*argv, "--out", str(w), "--overwrite", "--overwrite-any"], capsys, w, "contains the input")
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["rig", "from-lp", "LP", "--out", "PHOTO", "--overwrite"], "rig from-lp writes a .json file"),
+        (["rig", "to-lp", "dome24", "--out", "PHOTO", "--overwrite"], "rig to-lp writes a .lp file"),
+        (["calibrate", "--grey", "@sample", "--out", "PHOTO", "--overwrite"], "calibrate writes a .json file"),
+        (["sheet", "@sample", "--out", "NOTES"], "sheet writes a .png file"),
+    ],
+)
+def test_a_command_writes_only_its_kind_of_file(tmp_path, capsys, argv, words):
+    # rig from-lp --overwrite replaced an RTI photo its own .lp lists with rig JSON
+    rti = tmp_path / "rti"
+    rti.mkdir()
+    (rti / "img_00.png").write_bytes(b"\x89PNG photo bytes")
+    (rti / "notes").write_text("the lab's notes\n")
+    (rti / "lights.lp").write_text("1\nimg_00.png 0 0 1\n")
+    names = {"LP": str(rti / "lights.lp"), "PHOTO": str(rti / "img_00.png"), "NOTES": str(rti / "notes")}
+    assert_refused([names.get(a, a) for a in argv], capsys, rti, words)
+
+
+def test_training_runs_only_in_their_own_folders(tmp_path, capsys, capture):
+    lab = capture.parent
+    assert main(["synth", "--out", str(tmp_path / "s"), "--count", "1", "--size", "16"]) == 0
+    maps = next((tmp_path / "s").glob("000_*/maps"))
+    tiny = ["--preset", "tiny", "--crop", "16", "--batch", "1", "--workers", "0", "--max-steps", "1", "--device", "cpu"]
+    assert_refused(["train", *tiny, "--out", str(capture)], capsys, lab, "is a capture folder")
+    assert_refused(["train", *tiny, "--out", str(capture / "run")], capsys, lab, "lies in the capture")
+    (lab / "log.csv").write_text("date,swatch\n2026-11-30,17\n")  # the lab's own log, where a run keeps its
+    assert_refused(["train", *tiny, "--out", str(lab)], capsys, lab, "holds log.csv but no training run")
+    anyrig = ["--max-steps", "1", "--size", "16", "--batch", "1", "--device", "cpu"]
+    assert_refused(["train-anyrig", *anyrig, "--out", str(lab)], capsys, lab, "holds log.csv but no training run")
+    assert_refused(["train-anyrig", *anyrig, "--out", str(maps)], capsys, maps.parent, "is a map set folder")
+    (lab / "log.csv").unlink()
+    (lab / "config.json").write_text('{"exposure": 0.5}')  # a file of the lab's, by the name a run's config has
+    assert_refused(["train-anyrig", *anyrig, "--out", str(lab)], capsys, lab, "is not a train-anyrig run's config")
+    assert_refused(["train", *tiny, "--out", str(lab)], capsys, lab, "unknown key 'exposure'")
+
+
+def test_a_failed_training_start_leaves_no_run_behind(tmp_path, capsys):
+    # config.json was written before the init weights were read, and blocked the corrected command
+    bad = tmp_path / "w.safetensors"
+    bad.write_text("x")
+    run = tmp_path / "run"
+    tiny = ["--preset", "tiny", "--crop", "16", "--batch", "1", "--workers", "0", "--device", "cpu", "--val-every", "0"]
+    code, err = run_cli(["train", *tiny, "--max-steps", "1", "--out", str(run), "--init", str(bad)], capsys)
+    assert code == 2 and "w.safetensors" in err and len(err.strip().splitlines()) == 1, err
+    assert not (run / "config.json").exists()
+    code, err = run_cli(["train", *tiny, "--max-steps", "1", "--out", str(run)], capsys)
+    assert code == 0, err
+
+
+@pytest.mark.parametrize(
+    "settings, words",
+    [
+        ({"crop": "abc"}, "crop: expected an integer"),
+        ({"maps": 5}, "maps"),
+        ({"lr": "x"}, "lr: expected a finite number"),
+        ({"steps": None}, "steps: expected an integer"),
+        ({"batch": 0}, "batch: 0 must be at least 1"),
+        ({"seed": -1}, "seed: -1 must be in"),
+        ({"library": "folder"}, "library: expected a list of map set folders"),
+    ],
+)
+def test_a_training_config_file_is_checked_setting_by_setting(tmp_path, capsys, settings, words):
+    cfg = tmp_path / "c.json"
+    cfg.write_text(json.dumps({"preset": "tiny", "crop": 16, "workers": 0, **settings}))
+    code, err = run_cli(["train", "--config", str(cfg), "--max-steps", "1", "--out", str(tmp_path / "run")], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and words in err, err
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    "make, words",
+    [
+        (lambda p: p.write_text("garbage"), "is not a readable safetensors file"),
+        (lambda p: p.write_bytes((ROOT / "matscan/weights/dome24-cpu.safetensors").read_bytes()), "no step"),
+    ],
+)
+def test_train_anyrig_refuses_a_checkpoint_that_is_not_one(tmp_path, capsys, make, words):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text('{"train": {}, "net": {}}')
+    make(run / "checkpoint.safetensors")
+    argv = ["train-anyrig", "--max-steps", "1", "--size", "16", "--batch", "1", "--device", "cpu", "--out", str(run)]
+    code, err = run_cli(argv, capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and words in err, err
+
+
+def test_train_anyrig_checks_its_device(tmp_path, capsys):
+    argv = ["train-anyrig", "--max-steps", "1", "--size", "16", "--device", "tpu", "--out", str(tmp_path / "run")]
+    code, err = run_cli(argv, capsys)
+    assert code == 2 and "device: 'tpu' is not one of auto, cpu, cuda, cuda:N" in err, err
+    assert not (tmp_path / "run").exists()

@@ -110,6 +110,7 @@ def _write(tmp_path, mutate):
         (lambda d: d.update(reference_distance_mm=-1), r"reference_distance_mm: must be positive"),
         (lambda d: d["lights"][0].update(intensity=[1, 1]), r"lights\[0\]\.intensity: expected 3"),
         (lambda d: d["subsets"].update(bad=[0, 30]), r"subsets\['bad'\]: 30 is not a light"),
+        (lambda d: d["subsets"].update({"6": []}), r"subsets\['6'\]: names no light"),
     ],
 )
 def test_rig_file_errors(tmp_path, mutate, words):
