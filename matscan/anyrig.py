@@ -555,7 +555,6 @@ def train(
     from matscan.outputs import check_run_folder
     from matscan.train import resolve_device
 
-    library = read_library(cfg.library)
     out = Path(out)
     check_run_folder(out, cfg.library, (CHECKPOINT, "log.csv", WEIGHTS))
     if (out / "config.json").is_file():  # rewritten at each start: it must be a run's of this kind
@@ -565,6 +564,7 @@ def train(
         if not (isinstance(kept, dict) and {"train", "net"} <= set(kept)):
             raise input_error(out / "config.json", "is not a train-anyrig run's config; choose another --out")
     device = resolve_device(cfg.device)
+    library = read_library(cfg.library)
     step = 0
     ckpt = out / CHECKPOINT
     state = None

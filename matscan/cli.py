@@ -826,7 +826,7 @@ TRAIN_EMA = 0.999
 
 def cmd_train(args: argparse.Namespace) -> str:
 
-    from matscan.train import TrainConfig, check_train_config, train
+    from matscan.train import TrainConfig, check_train_config, read_run_config, train
 
     values = {}
     if args.config:
@@ -866,14 +866,10 @@ def cmd_train(args: argparse.Namespace) -> str:
     if args.maps:
         values["maps"] = tuple(m.strip() for m in args.maps.split(","))
     if "ema" not in values:  # a new run averages its weights; a resumed one keeps what it began with
-        saved = Path(args.out) / "config.json"
         if args.config:  # a run's config.json from before the average: none, so the run is remade as it was
             values["ema"] = 0.0
-        elif saved.is_file():
-            from matscan.jsonfile import read_json
-
-            kept = read_json(saved)
-            values["ema"] = kept.get("ema", 0.0) if isinstance(kept, dict) else 0.0
+        elif (kept := read_run_config(args.out)) is not None:
+            values["ema"] = kept.ema
         else:
             values["ema"] = TRAIN_EMA
     cfg = TrainConfig.from_dict(values, args.config or "train")

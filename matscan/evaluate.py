@@ -241,11 +241,17 @@ def check_methods(
 
 
 def method_inputs(methods: Sequence[str]) -> list[Path]:
-    """The weights files that ``methods`` read (``nets:FILE`` and the like): inputs,
-    which the study's output must never overwrite."""
+    """The weights files that ``methods`` read (``nets:FILE`` and the like; the shipped
+    networks for ``nets``, ``nets+refine`` and ``auto``): inputs, which the study's output
+    must never overwrite."""
     from matscan.weights import model_path
 
-    return [model_path(path) for method in methods if (path := method.partition(":")[2])]
+    found = []
+    for method in methods:
+        kind, _, path = method.partition(":")
+        if kind in ("nets", "nets+refine", "auto") and model_path(path or "default") not in found:
+            found.append(model_path(path or "default"))
+    return found
 
 
 #: Networks loaded in this process, by weights name or path.

@@ -191,6 +191,35 @@ def _written_by(folder: Path) -> str | None:
     return command if isinstance(command, str) else None
 
 
+def _lp_files_beside(path: Path) -> list[Path]:
+    """The RTI light files (``.lp``) beside ``path`` that list at least one photo there."""
+    try:
+        return sorted(p for p in path.parent.glob("*") if p.suffix.lower() == ".lp" and _rti_photos_beside(p))
+    except OSError:
+        return []
+
+
+def _owned_here(path: Path) -> str | None:
+    """What ``path`` belongs to, if a record beside it claims it: an RTI capture (an
+    ``.lp`` there lists it) or a map set (``mapset.json`` there, or a map it lists); else
+    None."""
+    for lp in _lp_files_beside(path):
+        if path.name in _rti_photos_beside(lp):
+            return f"is a photo of the RTI capture in {path.parent} (listed in {lp.name})"
+    manifest = path.parent / "mapset.json"
+    if manifest.is_file():
+        if path.name == "mapset.json":
+            return f"is the record of the map set in {path.parent}"
+        try:
+            listed = json.loads(manifest.read_text(encoding="utf-8")).get("files", {})
+            names = {entry.get("file") for entry in listed.values() if isinstance(entry, dict)}
+        except (OSError, ValueError, AttributeError):
+            names = set()
+        if path.name in names:
+            return f"is a map of the map set in {path.parent}"
+    return None
+
+
 def _rti_photos_beside(path: Path) -> list[str]:
     """The photos beside ``path`` that it lists, if it is an RTI light file (``.lp``: a
     'FILE x y z' line per photo); empty otherwise."""
@@ -285,12 +314,14 @@ def check_utf8(*paths: str | Path) -> None:
             ) from None
 
 
-def check_place(out: str | Path, inputs: Iterable[str | Path] = (), flag: str = "--out") -> tuple[Path, Path]:
+def check_place(
+    out: str | Path, inputs: Iterable[str | Path] = (), flag: str = "--out", current_ok: bool = False
+) -> tuple[Path, Path]:
     """The checks of where an output lies, whatever it replaces (:func:`check_destination`
     adds those; ``matscan capture``, which resumes its own folder, makes only these and
     its own): a usable UTF-8 path, not a symbolic link, not the root or the current
-    folder, not an input nor inside or around one. Returns the path as given and
-    resolved."""
+    folder (unless ``current_ok``: a training run, which never replaces its folder), not an
+    input nor inside or around one. Returns the path as given and resolved."""
     text = str(out)
     if not text or "\x00" in text:
         raise MatscanError(f"{flag}: {text!r} is not a usable path")
@@ -308,7 +339,7 @@ def check_place(out: str | Path, inputs: Iterable[str | Path] = (), flag: str = 
         cwd = _resolve(Path.cwd())
     except FileNotFoundError:  # the current folder was deleted: nothing to protect there
         cwd = None
-    if cwd is not None and _within(cwd, path):
+    if cwd is not None and _within(cwd, path) and not (current_ok and cwd == path):
         raise input_error(given, "is the current folder or holds it; choose a new folder for the output")
     for item in inputs:
         inp = _resolve(Path(item))
@@ -329,7 +360,7 @@ def check_run_folder(
     run adds and rewrites its own files in place (to resume), so a folder holding one of
     those names without a run's ``config.json`` is refused rather than written over
     (other files beside a run, its notes, are left alone). Returns the path resolved."""
-    given, path = check_place(run, inputs, flag)
+    given, path = check_place(run, inputs, flag, current_ok=True)
     if (holder := capture_above(path)) is not None:
         raise input_error(given, f"lies in the capture {holder}; matscan never writes into a capture")
     if path.exists():
@@ -370,6 +401,8 @@ def check_destination(
         raise input_error(
             given, f"lies in the capture {holder}; matscan never replaces a capture's files (choose another {flag})"
         )
+    if kind == "file" and path.exists() and (owner := _owned_here(path)) is not None:
+        raise input_error(given, f"{owner}; matscan never replaces it (choose another {flag})")
     if kind == "file" and (photos := _rti_photos_beside(path)):
         raise input_error(
             given,
@@ -486,7 +519,7 @@ def claim_output(
     """Check ``out`` (:func:`check_destination`; and, where ``suffixes`` are given, that
     its name ends in one of them, as the file the command writes must), lock it, clear
     stale temporaries, and yield an :class:`OutputClaim` for the rest of the command."""
-    if suffixes and Path(out).suffix.lower() not in suffixes:
+    if suffixes and Path(out).suffix not in suffixes:  # exact, as the readers match it (rig .json, .lp)
         raise MatscanError(f"{flag}: {out}: {command} writes a {' or '.join(suffixes)} file; name it so")
     resolved = _resolve(Path(out))
     if held(resolved) and resolved in _ACTIVE:  # claimed earlier in this command, checked then: the same claim

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -157,7 +158,7 @@ class Rig:
     def subset(self, spec: str | Sequence[int] | None) -> tuple[int, ...]:
         """Light indices for a named subset (``"6"``), a list (``"0,4,8"`` or
         ``[0, 4, 8]``), or all lights (``None`` or ``"all"``)."""
-        if spec is None or spec == "all":
+        if spec is None or (isinstance(spec, str) and spec == "all"):
             return tuple(range(len(self.lights)))
         if isinstance(spec, str):
             spec = spec.strip()
@@ -176,7 +177,7 @@ class Rig:
             except ValueError:
                 raise MatscanError(f"lights: {spec!r} is not a list of light indices like 0,4,8") from None
         else:
-            indices = [int(i) for i in spec]
+            indices = [_light_index(i) for i in spec]
         bad = [i for i in indices if not 0 <= i < len(self.lights)]
         if bad:
             raise MatscanError(
@@ -202,6 +203,17 @@ class Rig:
     def camera_point(self) -> Vec3:
         """The camera as a point for the renderer (:meth:`Camera.point`)."""
         return self.camera.point(self.reference_distance_mm)
+
+
+def _light_index(value: Any) -> int:
+    """An integer light index (numpy's and torch's integers too); 2.7 or True is an error,
+    not light 2 or 1."""
+    if not isinstance(value, bool) and type(value).__name__ not in ("bool", "bool_"):
+        try:
+            return operator.index(value)
+        except TypeError:
+            pass
+    raise MatscanError(f"lights: {short_repr(value)} is not a light index (an integer)")
 
 
 @dataclass(frozen=True)

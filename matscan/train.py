@@ -259,8 +259,31 @@ def check_train_config(data: Any, where: str) -> TrainConfig:
     return TrainConfig.from_dict(obj, where)
 
 
+#: Settings every run's config.json has held since the first: a file without them is not a run's.
+RUN_KEYS = ("preset", "variant", "maps", "rig", "crop", "batch", "lr", "steps")
+
+
+def read_run_config(run: str | Path) -> TrainConfig | None:
+    """The config of the training run in folder ``run`` (its ``config.json``, checked),
+    or None where there is none. A ``config.json`` that is not a run's (another tool's,
+    another kind of run's, a damaged one) is a one-line error naming it."""
+    path = Path(run) / "config.json"
+    if not path.is_file():
+        return None
+    data = read_json(path)
+    try:
+        if not isinstance(data, dict) or not set(RUN_KEYS) <= set(data):
+            raise MatscanError("lacks a run's settings")
+        cfg = check_train_config(data, str(path))
+        check_values(cfg)
+    except MatscanError as exc:
+        why = str(exc).removeprefix(f"{path}: ")
+        raise input_error(path, f"is not a matscan train run's config ({why}); choose another --out") from None
+    return cfg
+
+
 #: The least value of each counted or sized training setting (the command line's bounds).
-LEAST = {"crop": 16, "batch": 1, "steps": 1, "render_lights": 1, "val_every": 0, "val_count": 1, "log_every": 1}
+LEAST = {"crop": 16, "batch": 1, "steps": 1, "render_lights": 0, "val_every": 0, "val_count": 1, "log_every": 1}
 
 
 def check_values(cfg: TrainConfig) -> None:
@@ -268,6 +291,8 @@ def check_values(cfg: TrainConfig) -> None:
     for name, least in LEAST.items():
         if getattr(cfg, name) < least:
             raise MatscanError(f"{name}: {getattr(cfg, name)!r} must be at least {least}")
+    if not 0 <= cfg.ema < 1:
+        raise MatscanError(f"ema: {cfg.ema!r} must be a decay per step in [0, 1) (0: no moving average)")
     if not 0 <= cfg.seed < 2**31:
         raise MatscanError(f"seed: {cfg.seed!r} must be in [0, 2^31)")
     for name in ("lr", "checkpoint_minutes", "grad_clip"):
@@ -589,6 +614,7 @@ def train(
     run = Path(run)
     check_values(cfg)
     check_run_folder(run, cfg.library, (CHECKPOINT, "log.csv", "val.csv", SNAPSHOTS))
+    saved = read_run_config(run)
     rank, world = _dist_info()
     device = resolve_device(cfg.device, int(os.environ.get("LOCAL_RANK", "0")))
     if device.type == "cuda":
@@ -620,8 +646,7 @@ def train(
     step, elapsed = 0, 0.0
     if rank == 0:
         run.mkdir(parents=True, exist_ok=True)
-        if config_path.is_file():
-            saved = check_train_config(read_json(config_path), str(config_path))
+        if saved is not None:
             diff = [
                 f.name
                 for f in fields(cfg)

@@ -778,7 +778,12 @@ def test_evaluate_never_deletes_the_weights_its_methods_name(tmp_path, capsys):
         (["rig", "from-lp", "LP", "--out", "PHOTO", "--overwrite"], "rig from-lp writes a .json file"),
         (["rig", "to-lp", "dome24", "--out", "PHOTO", "--overwrite"], "rig to-lp writes a .lp file"),
         (["calibrate", "--grey", "@sample", "--out", "PHOTO", "--overwrite"], "calibrate writes a .json file"),
-        (["sheet", "@sample", "--out", "NOTES"], "sheet writes a .png file"),
+        (["sheet", "@sample", "--out", "NOTES", "--overwrite"], "sheet writes a .png file"),
+        (["rig", "from-lp", "LP", "--out", "UPPER", "--overwrite"], "rig from-lp writes a .json file"),
+        # the right kind of file, but a capture's or a map set's
+        (["sheet", "@sample", "--out", "PHOTO", "--overwrite"], "is a photo of the RTI capture"),
+        (["rig", "from-lp", "LP", "--out", "MAPSET", "--overwrite"], "is the record of the map set"),
+        (["sheet", "@sample", "--out", "MAP", "--overwrite"], "is a map of the map set"),
     ],
 )
 def test_a_command_writes_only_its_kind_of_file(tmp_path, capsys, argv, words):
@@ -788,7 +793,20 @@ def test_a_command_writes_only_its_kind_of_file(tmp_path, capsys, argv, words):
     (rti / "img_00.png").write_bytes(b"\x89PNG photo bytes")
     (rti / "notes").write_text("the lab's notes\n")
     (rti / "lights.lp").write_text("1\nimg_00.png 0 0 1\n")
-    names = {"LP": str(rti / "lights.lp"), "PHOTO": str(rti / "img_00.png"), "NOTES": str(rti / "notes")}
+    (rti / "rig.JSON").write_text("{}")  # the readers take .json only
+    from conftest import random_maps
+
+    from matscan.mapset import write_mapset
+
+    write_mapset(rti / "set", random_maps(8))
+    names = {
+        "LP": str(rti / "lights.lp"),
+        "PHOTO": str(rti / "img_00.png"),
+        "NOTES": str(rti / "notes"),
+        "UPPER": str(rti / "rig.JSON"),
+        "MAPSET": str(rti / "set" / "mapset.json"),
+        "MAP": str(rti / "set" / "diffuse.png"),
+    }
     assert_refused([names.get(a, a) for a in argv], capsys, rti, words)
 
 
@@ -804,10 +822,23 @@ def test_training_runs_only_in_their_own_folders(tmp_path, capsys, capture):
     anyrig = ["--max-steps", "1", "--size", "16", "--batch", "1", "--device", "cpu"]
     assert_refused(["train-anyrig", *anyrig, "--out", str(lab)], capsys, lab, "holds log.csv but no training run")
     assert_refused(["train-anyrig", *anyrig, "--out", str(maps)], capsys, maps.parent, "is a map set folder")
+    (lab / "config.json").write_text("{}")  # a file of the lab's, by the name a run's config has
+    assert_refused(["train", *tiny, "--out", str(lab)], capsys, lab, "is not a matscan train run's config")
     (lab / "log.csv").unlink()
-    (lab / "config.json").write_text('{"exposure": 0.5}')  # a file of the lab's, by the name a run's config has
+    (lab / "config.json").write_text('{"exposure": 0.5}')
     assert_refused(["train-anyrig", *anyrig, "--out", str(lab)], capsys, lab, "is not a train-anyrig run's config")
-    assert_refused(["train", *tiny, "--out", str(lab)], capsys, lab, "unknown key 'exposure'")
+    assert_refused(["train", *tiny, "--out", str(lab)], capsys, lab, "is not a matscan train run's config")
+
+
+def test_a_training_run_resumes_in_the_current_folder(tmp_path, capsys, monkeypatch):
+    # it never replaces its folder, so --out . is its own folder, not one to protect
+    tiny = ["--preset", "tiny", "--crop", "16", "--batch", "1", "--workers", "0", "--device", "cpu", "--val-every", "0"]
+    assert main(["train", *tiny, "--max-steps", "1", "--out", str(tmp_path / "run")]) == 0
+    monkeypatch.chdir(tmp_path / "run")
+    code, err = run_cli(["train", *tiny, "--max-steps", "1", "--out", "."], capsys)
+    assert code == 0, err
+    rows = (tmp_path / "run" / "log.csv").read_text().splitlines()
+    assert rows[-1].split(",")[0] == "2", rows  # step 2: the run went on
 
 
 def test_a_failed_training_start_leaves_no_run_behind(tmp_path, capsys):
@@ -827,7 +858,7 @@ def test_a_failed_training_start_leaves_no_run_behind(tmp_path, capsys):
     "settings, words",
     [
         ({"crop": "abc"}, "crop: expected an integer"),
-        ({"maps": 5}, "maps"),
+        ({"maps": 5}, "maps: expected a non-empty list of map names, got 5"),
         ({"lr": "x"}, "lr: expected a finite number"),
         ({"steps": None}, "steps: expected an integer"),
         ({"batch": 0}, "batch: 0 must be at least 1"),
@@ -865,3 +896,15 @@ def test_train_anyrig_checks_its_device(tmp_path, capsys):
     code, err = run_cli(argv, capsys)
     assert code == 2 and "device: 'tpu' is not one of auto, cpu, cuda, cuda:N" in err, err
     assert not (tmp_path / "run").exists()
+
+
+def test_evaluate_counts_the_shipped_networks_its_methods_use_as_inputs(tmp_path):
+    # --methods nets (the default weights) with --out the weights' folder would delete them
+    from matscan.evaluate import method_inputs
+    from matscan.weights import model_path
+
+    shipped = model_path("default")
+    assert method_inputs(["baseline", "nets", "auto"]) == [shipped]
+    assert method_inputs(["fit", "hsh"]) == []
+    with pytest.raises(MatscanError, match="contains the input"):
+        check_destination(shipped.parent, method_inputs(["nets"]), "folder", True, True, command="evaluate")

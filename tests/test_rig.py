@@ -6,6 +6,7 @@ import json
 import math
 
 import pytest
+import torch
 
 from matscan.errors import MatscanError
 from matscan.rig import builtin_rig, load_rig, resolve_rig, rig_to_dict, save_rig
@@ -60,6 +61,17 @@ def test_table4_subsets():
 def test_bad_subsets(spec, words):
     with pytest.raises(MatscanError, match=words):
         builtin_rig("dome24").subset(spec)
+
+
+def test_light_indices_may_be_numpy_or_torch_integers_not_floats_or_bools():
+    import numpy as np
+
+    rig = builtin_rig("dome24")
+    assert rig.subset(np.array([3, 5])) == (3, 5) and rig.subset(torch.tensor([1, 2])) == (1, 2)
+    torch.testing.assert_close(rig.light_set(np.array([0, 4])).position, rig.light_set([0, 4]).position)
+    for bad in ([2.7], [True], [np.bool_(True)]):
+        with pytest.raises(MatscanError, match="is not a light index"):
+            rig.light_set(bad)
 
 
 @pytest.mark.parametrize("indices, words", [([99], "index 99"), ([-1], "index -1"), ([3, 3], "twice")])

@@ -199,6 +199,8 @@ def simulate(
     """
     from matscan.outputs import claim_output
 
+    if lights is not None and not rig.per_image_geometry:
+        rig.subset(lights)  # the lights checked before the output is claimed
     with claim_output(out, "simulate", inputs, overwrite=overwrite, overwrite_any=overwrite_any):
         return _simulate(maps, rig, out, lights, camera, seed, size, geometry, overwrite, progress)
 
