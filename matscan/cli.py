@@ -1360,7 +1360,7 @@ def build_parser() -> argparse.ArgumentParser:
         dest="max_saturated",
         type=non_negative_float,
         default=0.001,
-        help="largest fraction of saturated pixels in an LED photo (default 0.001)",
+        help="largest fraction of saturated pixels in an LED photo, below 1 (default 0.001)",
     )
     p.add_argument("--retakes", type=non_negative_int, default=2, help="retakes of a frame that fails its checks")
     p.add_argument("--seed", type=seed_int, default=0, help="noise seed of the virtual camera (default 0)")

@@ -172,8 +172,11 @@ class Rig:
                     f"lights: {spec!r} is not a subset of rig {self.name!r} (one of {names}); "
                     "give light indices as a list like 0,4,8 (a single light as 5,)"
                 )
+            items = [s.strip() for s in spec.split(",")]
+            if items[-1] == "":  # "5,": a list of one light
+                items.pop()
             try:
-                indices = [int(s) for s in spec.split(",") if s.strip()]
+                indices = [int(s) for s in items]
             except ValueError:
                 raise MatscanError(f"lights: {spec!r} is not a list of light indices like 0,4,8") from None
         else:

@@ -698,3 +698,16 @@ def test_the_operator_is_asked_to_empty_the_stage(tmp_path):
     assert sorted(cap.backlight) == ["blue", "blue_empty", "green", "green_empty"]
     # the empty stage shows no sample: its green photo is the backlight alone, brighter than with the sample
     assert float(cap.backlight["green_empty"].mean()) > float(cap.backlight["green"].mean())
+
+
+@pytest.mark.parametrize(
+    "settings, words",
+    [
+        ({"max_saturated": 2.0}, "--max-saturated: 2.0 must be a fraction of the pixels"),
+        ({"max_saturated": 1.0}, "--max-saturated: 1.0"),  # every pixel may saturate: no check at all
+        ({"level": 0.0}, "--level: 0.0 must be above 0"),
+    ],
+)
+def test_acquisition_settings_out_of_range_are_refused(settings, words):
+    with pytest.raises(MatscanError, match=words):
+        AcquireConfig(**settings)

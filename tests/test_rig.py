@@ -56,7 +56,14 @@ def test_table4_subsets():
 
 @pytest.mark.parametrize(
     "spec, words",
-    [("7", "not a subset"), ("0,99", "index 99"), ("0,0", "twice"), ("a,b", "not a list")],
+    [
+        ("7", "not a subset"),
+        ("0,99", "index 99"),
+        ("0,0", "twice"),
+        ("a,b", "not a list"),
+        ("0,,4", "not a list"),  # was read as 0,4: a typo for a light left out
+        (",4", "not a list"),
+    ],
 )
 def test_bad_subsets(spec, words):
     with pytest.raises(MatscanError, match=words):

@@ -97,6 +97,8 @@ class AcquireConfig:
             raise MatscanError(f"--target: {self.target!r} is not one of {', '.join(TARGETS)}")
         if not 0 < self.level <= 1:
             raise MatscanError(f"--level: {self.level!r} must be above 0 and at most 1")
+        if not 0 <= self.max_saturated < 1:
+            raise MatscanError(f"--max-saturated: {self.max_saturated!r} must be a fraction of the pixels, below 1")
         low, high = EXPOSURE_LIMITS
         if self.exposure_s is not None and not low <= self.exposure_s <= high:
             raise MatscanError(f"--exposure: {self.exposure_s!r} must be a number of seconds from {low:g} to {high:g}")
