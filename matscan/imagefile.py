@@ -189,9 +189,19 @@ def _read_cv2(path: Path) -> ImageData:
 def _read_tiff(path: Path) -> ImageData:
     import tifffile
 
-    arr = _channels_last(np.asarray(tifffile.imread(str(path))))
-    if arr.ndim != 3:
-        raise input_error(path, f"expected a 2-D image, got an array of shape {arr.shape}")
+    with tifffile.TiffFile(str(path)) as tif:
+        series = tif.series[0]  # the full-resolution image; later series are previews
+        axes, arr = series.axes, np.asarray(series.asarray())
+    # Samples are stored either interleaved (YXS) or one plane per channel (SYX, the
+    # "planar" layout); any other axis (pages, Z, time) makes the file a stack.
+    if axes in ("YX", "YXS", "YXC"):
+        arr = _channels_last(arr)
+    elif axes in ("SYX", "CYX"):
+        arr = np.moveaxis(arr, 0, -1)
+    else:
+        raise input_error(
+            path, f"holds a stack of images (axes {axes}, shape {tuple(arr.shape)}); expected one 2-D image"
+        )
     stored, kind, bits = _stored(arr, path)
     return ImageData(stored, kind, bits)
 

@@ -178,14 +178,22 @@ def _find_file(folder: Path, name: str) -> Path | None:
     return found[0] if found else None
 
 
+def drop_alpha(px: np.ndarray, path: Path) -> np.ndarray:
+    """A map file's (H, W, C) pixels as grey (C = 1) or RGB (C = 3): an alpha channel
+    (grey + alpha, RGB + alpha) dropped; any other channel count refused naming the file."""
+    c = px.shape[2]
+    if c in (2, 4):
+        return px[:, :, : c - 1]
+    if c not in (1, 3):
+        raise input_error(path, f"has {c} channels; a map has 1 (grey) or 3 (RGB), and may add alpha")
+    return px
+
+
 def _read_map(path: Path, name: str, meta: dict[str, Any]) -> Tensor:
     spec = SPECS[name]
     img = read_image(path)
-    px = img.pixels
+    px = drop_alpha(img.pixels, path)
     c = px.shape[2]
-    if c == 4:
-        px = px[:, :, :3]
-        c = 3
     if spec.channels == 1:
         if c == 3:
             spread = float(np.abs(px - px.mean(axis=2, keepdims=True)).max())
@@ -197,8 +205,6 @@ def _read_map(path: Path, name: str, meta: dict[str, Any]) -> Tensor:
             px = px.mean(axis=2, keepdims=True)
     elif c == 1:
         px = np.repeat(px, 3, axis=2)
-    elif c == 2:
-        raise input_error(path, f"has 2 channels; a {name} map needs 3")
     t = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).float()
     linear_file = img.kind == "float"
     if linear_file:  # integer files hold 0 to 1 by construction; float ones may hold anything

@@ -88,3 +88,26 @@ def test_raw_files_need_the_extra_or_a_real_raw(tmp_path):
         words = r"x\.dng: reading RAW files needs the 'raw' extra"
     with pytest.raises(MatscanError, match=words):
         read_image(tmp_path / "x.dng")
+
+
+def test_tiff_planar_and_interleaved_read_alike(tmp_path):
+    """A TIFF may store RGB one plane per channel ("planar", as some scanners and
+    microscopes write it); read through tifffile's own writer, both layouts give the
+    same (H, W, 3) pixels."""
+    import tifffile
+
+    rgb = np.random.default_rng(2).integers(0, 65536, size=(6, 9, 3), dtype=np.uint16)
+    tifffile.imwrite(tmp_path / "planar.tif", np.moveaxis(rgb, -1, 0), planarconfig="separate", photometric="rgb")
+    tifffile.imwrite(tmp_path / "contig.tif", rgb, planarconfig="contig", photometric="rgb")
+    for name in ("planar.tif", "contig.tif"):
+        img = read_image(tmp_path / name)
+        assert img.bits == 16
+        np.testing.assert_array_equal(img.stored, rgb)
+
+
+def test_tiff_stack_is_refused_naming_the_file(tmp_path):
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "pages.tif", np.zeros((5, 6, 9), np.uint8))  # five grey pages
+    with pytest.raises(MatscanError, match=r"pages\.tif: holds a stack of images \(axes QYX"):
+        read_image(tmp_path / "pages.tif")

@@ -175,3 +175,29 @@ def test_write_maps_never_leaves_a_torn_mapset_json(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert (folder / "mapset.json").read_text(encoding="utf-8") == before
     json.loads(before)
+
+
+def test_map_channel_counts(tmp_path):
+    """Grey + alpha and RGB + alpha read as grey and RGB (the alpha dropped); five
+    channels (a TIFF with extra samples) is refused naming the file."""
+    import tifffile
+
+    maps = random_maps(8)
+    write_mapset(tmp_path / "m", maps)
+    rough = maps.roughness[0].numpy()
+    codes = np.rint(rough * 65535).astype(np.uint16)
+    (tmp_path / "m" / "roughness.png").unlink()
+    tifffile.imwrite(
+        tmp_path / "m" / "roughness.tif",
+        np.stack([codes, np.full_like(codes, 65535)], axis=-1),
+        photometric="minisblack",
+        extrasamples=["unassalpha"],
+    )
+    back = read_mapset(tmp_path / "m")
+    assert back.roughness.shape == (1, 8, 8)
+    np.testing.assert_allclose(back.roughness[0].numpy(), codes / 65535, atol=1e-6)
+    tifffile.imwrite(
+        tmp_path / "m" / "roughness.tif", np.zeros((8, 8, 5), np.uint8), photometric="minisblack", planarconfig="contig"
+    )
+    with pytest.raises(MatscanError, match=r"roughness\.tif: has 5 channels; a map has 1 \(grey\) or 3"):
+        read_mapset(tmp_path / "m")

@@ -34,7 +34,7 @@ from matscan.brdf import metallic_to_specular
 from matscan.color import srgb_to_linear
 from matscan.errors import MatscanError, input_error
 from matscan.imagefile import READABLE, read_image
-from matscan.mapset import MapSet, check_float_map, normalize_normals, read_mapset
+from matscan.mapset import MapSet, check_float_map, drop_alpha, normalize_normals, read_mapset
 
 #: Words in a file name that identify a map (after splitting on separators and case changes).
 KEYWORDS: dict[str, tuple[str, ...]] = {
@@ -87,9 +87,7 @@ def _image(path: Path, name: str = "diffuse") -> tuple[np.ndarray, str]:
     """A map file's pixels (alpha dropped) and kind; a float file's values checked as a
     ``name`` map's (:func:`matscan.mapset.check_float_map`)."""
     img = read_image(path)
-    px = img.pixels
-    if px.shape[2] == 4:
-        px = px[:, :, :3]
+    px = drop_alpha(img.pixels, path)
     if img.kind == "float":
         px = check_float_map(torch.from_numpy(np.ascontiguousarray(px)), path, name).numpy()
     return px, img.kind
