@@ -152,6 +152,10 @@ def batch(
         raise input_error(weights, "no such weights file")
     if cfg.anyrig != "none":
         anyrig_path(cfg.anyrig)
+    if cfg.calibration is not None:  # one bad file would fail every capture, one by one
+        from matscan.calibrate import check_calibration_file
+
+        check_calibration_file(cfg.calibration)
     paths = expand_captures(captures)
     names = output_names(paths)
     out = Path(out)

@@ -1099,6 +1099,9 @@ def exposure_ratio(capture: Capture) -> tuple[float, list[str]]:
     return seconds * capture.meta.get("led_level", 1.0) / (recorded[0] * recorded[1]), []
 
 
+#: The range a flat field's median must lie in: it is a gain of mean 1 (vignetting and
+#: LED falloff across the field stay well within it).
+FLAT_MEDIAN = (0.25, 4.0)
 #: The largest magnitude of a colour matrix entry (real ones are within ±3).
 MAX_MATRIX_ENTRY = 1e3
 _LIGHT_KEY = re.compile(r"0|[1-9][0-9]{0,8}")
@@ -1116,11 +1119,14 @@ def _where(capture: Capture) -> tuple[str, str, str]:
     return "calibration", "calibration.", "the calibration"
 
 
-def _light_keyed(value: Any, where: str, rig: Rig) -> dict[int, Any]:
-    """An object keyed by light indices of ``rig`` (``"0"``, ``"17"``), as {index: value}."""
+def _light_keyed(value: Any, where: str, rig: Rig | None) -> dict[int, Any]:
+    """An object keyed by light indices of ``rig`` (``"0"``, ``"17"``), as {index: value};
+    with no rig, keyed by light indices of any rig."""
     out = {}
     for key, item in check_object(value, where).items():
-        if not _LIGHT_KEY.fullmatch(key) or int(key) >= len(rig.lights):
+        if not _LIGHT_KEY.fullmatch(key):
+            raise MatscanError(f"{where}: key {short_repr(key)} is not a light index (0, 1, 2, …)")
+        if rig is not None and int(key) >= len(rig.lights):
             raise MatscanError(
                 f"{where}: key {short_repr(key)} is not a light of rig {rig.name!r} (0 to {len(rig.lights) - 1})"
             )
@@ -1140,7 +1146,7 @@ def _colour_matrix(value: Any, where: str) -> Tensor:
     return torch.tensor(rows, dtype=torch.float32)
 
 
-def _scales(value: Any, where: str, rig: Rig) -> dict[int, tuple[float, float, float]]:
+def _scales(value: Any, where: str, rig: Rig | None) -> dict[int, tuple[float, float, float]]:
     """Per-light scales, each one number or an RGB triple (self-calibration writes
     those): finite, positive, within ``SCALE_LIMITS``; returned as RGB triples."""
     scales = {}
@@ -1157,13 +1163,13 @@ def _scales(value: Any, where: str, rig: Rig) -> dict[int, tuple[float, float, f
     return scales
 
 
-def _positions(value: Any, where: str, rig: Rig) -> dict[int, tuple[float, float, float]]:
+def _positions(value: Any, where: str, rig: Rig | None) -> dict[int, tuple[float, float, float]]:
     """Per-light positions (mm): three finite numbers each, above the sample plane, for
-    near lights only."""
+    near lights only (of ``rig``, where given)."""
     out = {}
     for k, p in _light_keyed(value, where, rig).items():
         field = f"{where}['{k}']"
-        if rig.lights[k].directional:
+        if rig is not None and rig.lights[k].directional:
             raise MatscanError(f"{field}: light {k} is directional in rig {rig.name!r}; it has no position")
         x, y, z = check_vector(p, 3, field)
         if not z > 0:
@@ -1172,20 +1178,34 @@ def _positions(value: Any, where: str, rig: Rig) -> dict[int, tuple[float, float
     return out
 
 
-def _flat_field(path: Path, size: tuple[int, int]) -> Tensor:
-    """A flat field (1 or 3, H, W) read from ``path``: finite, the photos' size."""
+def _flat_field(path: Path, size: tuple[int, int] | None) -> Tensor:
+    """A flat field (1 or 3, H, W) read from ``path``: finite, of median near 1, and
+    the photos' ``size`` (where given)."""
     from matscan.imagefile import read_image
 
     px = read_image(path).pixels
     if px.shape[2] not in (1, 3):
         raise input_error(path, f"a flat field has 1 or 3 channels, this one {px.shape[2]}")
     flat = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).float()
-    if tuple(flat.shape[-2:]) != size:
+    if size is not None and tuple(flat.shape[-2:]) != size:
         raise input_error(
             path, f"flat field is {flat.shape[-1]}×{flat.shape[-2]} pixels but the photos are {size[1]}×{size[0]}"
         )
     if not torch.isfinite(flat).all():
         raise input_error(path, "flat field holds NaN or infinite values")
+    if float(flat.min()) < 0:
+        raise input_error(path, f"flat field holds negative values (down to {float(flat.min()):.4g})")
+    # A flat field is a relative gain of mean 1 (light_scales writes it so); the photos
+    # are divided by it, so one far from 1 (all zero, a raw white-card photo) would
+    # scale the light it belongs to many times over, silently.
+    median = float(flat.median())
+    if not FLAT_MEDIAN[0] <= median <= FLAT_MEDIAN[1]:
+        raise input_error(
+            path,
+            f"flat field's median is {median:.4g}; a flat field is a relative gain of mean 1 "
+            f"(within {FLAT_MEDIAN[0]:g} to {FLAT_MEDIAN[1]:g}): divide it by its mean, or write it with "
+            "calibrate --flat-fields",
+        )
     return flat.clamp_min(1e-3)
 
 
@@ -1226,6 +1246,43 @@ def _light_list(indices: list[int]) -> str:
     return f"light {text} has" if len(indices) == 1 else f"lights {text} have"
 
 
+def _checked_fields(
+    cal: Any, place: str, prefix: str, rig: Rig | None
+) -> tuple[Tensor | None, dict[int, tuple[float, float, float]], dict[int, tuple[float, float, float]]]:
+    """A calibration's fields checked (keys, format, grey albedo, exposure), and its colour
+    matrix, scales and light positions read; light keys against ``rig`` where given."""
+    check_object(cal, place, _CALIBRATION_KEYS)
+    if cal["format"] != CALIBRATION_FORMAT:
+        raise MatscanError(f"{prefix}format: must be {CALIBRATION_FORMAT!r}, got {short_repr(cal['format'])}")
+    if "grey_albedo" in cal:
+        check_number(cal["grey_albedo"], f"{prefix}grey_albedo", 0.0, 1.0, positive=True)
+    _exposure(cal, prefix)
+    matrix = _colour_matrix(cal["colour_matrix"], f"{prefix}colour_matrix") if "colour_matrix" in cal else None
+    scales = _scales(cal["light_scales"], f"{prefix}light_scales", rig) if "light_scales" in cal else {}
+    moved = (
+        _positions(cal["light_positions_mm"], f"{prefix}light_positions_mm", rig) if "light_positions_mm" in cal else {}
+    )
+    return matrix, scales, moved
+
+
+def check_calibration_file(path: str | Path) -> None:
+    """Check a calibration file as far as it can be without a capture: its fields as
+    :func:`apply_calibration` checks them (light indices of any rig), and its flat
+    fields (beside it) readable and of median near 1. What needs the capture (its rig's
+    light count, the photos' size) is checked when it is applied. Errors name the file
+    in one line: ``matscan batch --calibration`` checks its file so before any capture."""
+    from matscan.jsonfile import read_json
+
+    path = Path(path)
+    cal = read_json(path)
+    _checked_fields(cal, str(path), f"{path}: ", None)
+    for k, file in _light_keyed(cal.get("flat_fields", {}), f"{path}: flat_fields", None).items():
+        file = check_file_name(file, f"{path}: flat_fields['{k}']")
+        if not (path.parent / file).is_file():
+            raise MatscanError(f"{path}: flat_fields['{k}']: no such file {short_repr(str(path.parent / file))}")
+        _flat_field(path.parent / file, None)
+
+
 def apply_calibration(capture: Capture) -> Capture:
     """The capture with its calibration applied (colour matrix, then per-light scale
     and flat field, and the lights at their calibrated positions); unchanged when it
@@ -1244,16 +1301,9 @@ def apply_calibration(capture: Capture) -> Capture:
     if cal is None:
         return capture
     place, prefix, name = _where(capture)
-    check_object(cal, place, _CALIBRATION_KEYS)
-    if cal["format"] != CALIBRATION_FORMAT:
-        raise MatscanError(f"{prefix}format: must be {CALIBRATION_FORMAT!r}, got {short_repr(cal['format'])}")
-    if "grey_albedo" in cal:
-        check_number(cal["grey_albedo"], f"{prefix}grey_albedo", 0.0, 1.0, positive=True)
-    matrix = _colour_matrix(cal["colour_matrix"], f"{prefix}colour_matrix") if "colour_matrix" in cal else None
-    scales = _scales(cal["light_scales"], f"{prefix}light_scales", capture.rig) if "light_scales" in cal else {}
+    matrix, scales, moved = _checked_fields(cal, place, prefix, capture.rig)
     flats = _flat_files(cal["flat_fields"], f"{prefix}flat_fields", capture) if "flat_fields" in cal else {}
-    if "light_positions_mm" in cal:
-        moved = _positions(cal["light_positions_mm"], f"{prefix}light_positions_mm", capture.rig)
+    if moved:
         capture = with_light_positions(capture, moved)
     ratio, warnings = exposure_ratio(capture)
     warnings += check_scales({str(k): sum(s) / 3 for k, s in scales.items()}, name)

@@ -257,3 +257,56 @@ def test_a_capture_path_that_is_not_utf8_is_refused_before_any_manifest(captures
     with pytest.raises(MatscanError, match=r"cork\\xff: the path is not valid UTF-8"):
         batch([str(odd)], tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("document", "words"),
+    [
+        ("{not json", r"cal\.json: .*JSON"),
+        (
+            '{"format": "matscan-calibration/1", "light_scales": {"x": 1}}',
+            r"light_scales: key 'x' is not a light index",
+        ),
+        (
+            '{"format": "matscan-calibration/1", "light_scales": {"3": -1}}',
+            r"light_scales\['3'\]: light 3 has scale -1",
+        ),
+        (
+            '{"format": "matscan-calibration/1", "flat_fields": {"3": "flat_03.exr"}}',
+            r"flat_fields\['3'\]: no such file",
+        ),
+    ],
+)
+def test_a_bad_calibration_stops_a_batch_before_any_capture(captures, tmp_path, document, words):
+    """``--calibration`` applies to every capture: a bad file is one line before any work,
+    not one failure per capture (it used to fail all five, one by one)."""
+    from matscan.batch import batch
+    from matscan.reconstruct import ReconstructConfig
+
+    (tmp_path / "cal.json").write_text(document)
+    cfg = ReconstructConfig(model="none", refine="off", calibration=str(tmp_path / "cal.json"))
+    with pytest.raises(MatscanError, match=words) as info:
+        batch([str(captures)], tmp_path / "out", cfg, workers=1)
+    assert str(tmp_path / "cal.json") in str(info.value) and "\n" not in str(info.value)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_good_calibration_passes_the_batchs_check(tmp_path):
+    """The check before a batch takes what ``calibrate`` writes: scales and flat fields."""
+    import numpy as np
+
+    from matscan.calibrate import check_calibration_file
+    from matscan.imagefile import write_image
+
+    write_image(tmp_path / "flat_03.exr", np.full((6, 6, 1), 1.02, np.float32), bits=32)
+    doc = {
+        "format": "matscan-calibration/1",
+        "light_scales": {"3": [1.0, 0.9, 1.1], "200": 0.8},  # light 200: any rig's, until a capture's rig reads it
+        "flat_fields": {"3": "flat_03.exr"},
+        "exposure_s": 0.01,
+    }
+    (tmp_path / "cal.json").write_text(json.dumps(doc))
+    check_calibration_file(tmp_path / "cal.json")
+    (tmp_path / "cal.json").write_text(json.dumps({**doc, "exposure_s": -1}))
+    with pytest.raises(MatscanError, match=r"cal\.json: exposure_s"):
+        check_calibration_file(tmp_path / "cal.json")

@@ -547,6 +547,34 @@ def test_a_light_scale_of_zero_is_refused_not_turned_into_black_maps(tmp_path):
     assert str(folder / "calibration.json") in msg
 
 
+@pytest.mark.parametrize(
+    "flat, words",
+    [
+        (np.zeros((8, 8, 1)), r"flat field's median is 0; a flat field is a relative gain of mean 1"),
+        (np.full((8, 8, 1), 200.0), r"flat field's median is 200;"),  # a white card's raw codes
+        (np.full((8, 8, 1), -1.0), r"flat field holds negative values \(down to -1\)"),
+    ],
+)
+def test_a_flat_field_far_from_mean_one_is_refused(tmp_path, flat, words):
+    """The photos are divided by a light's flat field: an all-zero one (clamped to 1e-3)
+    made that light's photos 1000 times brighter, silently."""
+    folder = make_capture(tmp_path, calibration_file=True)
+    write_image(folder / "flat_00.exr", flat.astype(np.float32), bits=32)
+    msg = _refused(folder, r"flat_00\.exr: " + words)
+    assert str(folder / "flat_00.exr") in msg
+
+
+def test_a_flat_field_of_mean_one_is_applied(tmp_path):
+    # the check's other side: a light's photo is divided by its flat field, pixel by pixel
+    folder = make_capture(tmp_path, calibration_file=True)
+    even = apply_calibration(load_capture(folder)).linear(positions=[0])[0]  # flat_00.exr is all ones
+    flat = np.linspace(0.5, 1.5, 64, dtype=np.float32).reshape(8, 8, 1)
+    write_image(folder / "flat_00.exr", flat, bits=32)
+    uneven = apply_calibration(load_capture(folder)).linear(positions=[0])[0]
+    expected = np.broadcast_to(1 / flat[..., 0], (3, 8, 8))
+    np.testing.assert_allclose((uneven / even).numpy(), expected, rtol=2e-3)
+
+
 def test_non_utf8_rig_and_mapset_files(tmp_path, bases):
     rig = tmp_path / "rig.json"
     rig.write_bytes(json.dumps(rig_to_dict(builtin_rig("dome24"))).encode().replace(b"dome24", b"dome\xff24"))
