@@ -87,8 +87,21 @@ def test_a_sphere_without_a_highlight_is_refused():
     dark = torch.zeros(3, *SIZE)
     with pytest.raises(MatscanError, match="no highlight on the sphere"):
         highlight_direction(dark, CENTRE, RADIUS, "x.png")
-    with pytest.raises(MatscanError, match="is not inside the photo"):
+    with pytest.raises(MatscanError, match=r"x\.png: the sphere \(-500, -500, r 10\): its centre lies outside"):
         highlight_direction(dark, (-500.0, -500.0), 10.0, "x.png")
+
+
+def test_a_sphere_that_does_not_fit_the_photo_is_refused():
+    """A radius of 1e9 px (the sphere's mask then covers the photo, every normal is
+    nearly straight up) read every light as overhead; such a sphere is refused. One cut
+    by the frame by less than a quarter of its radius still gives its lights."""
+    light = _direction(40.0, 0.0)
+    photo = chrome_sphere(light, centre=(52.0, 88.6), radius=60.0)  # 8 px past the left edge
+    assert _angle(highlight_direction(photo, (52.0, 88.6), 60.0, "x.png"), light) < 1.0
+    with pytest.raises(MatscanError, match=r"x\.png: the sphere \(101\.3, 88\.6, r 1e\+09\) reaches \d+ px past"):
+        highlight_direction(chrome_sphere(light), CENTRE, 1e9, "x.png")
+    with pytest.raises(MatscanError, match=r"reaches 40 px past the 200×180 photo's edge"):
+        highlight_direction(chrome_sphere(light), CENTRE, 128.6, "x.png")  # 40 px above the top row
 
 
 def test_cli_writes_an_lp_file_from_sphere_photos(tmp_path, capsys):

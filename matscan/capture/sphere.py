@@ -285,6 +285,7 @@ def highlight_direction(
     orthographic."""
     grey = image.double().mean(0) if image.ndim == 3 else image.double()
     sphere = f"the sphere ({centre[0]:g}, {centre[1]:g}, r {radius:g})"
+    check_in_photo(centre, radius, tuple(grey.shape), where, sphere)
     lens = as_lens(lens)
     if lens is None:
         normals, mask = sphere_normals(tuple(grey.shape), centre, radius)
@@ -300,6 +301,28 @@ def highlight_direction(
         v = v / v.norm()
     light = 2 * (n @ v) * n - v
     return (light / light.norm()).float()
+
+
+#: How far past the photo's edge a sphere's outline may reach, as a share of its radius
+#: (a sphere cut by the frame; its highlights for low lights lie in the part cut off).
+OUTSIDE_REACH = 0.25
+
+
+def check_in_photo(centre: tuple[float, float], radius: float, shape: tuple[int, int], where: str, sphere: str) -> None:
+    """Refuse a sphere (centre column and row, radius; pixels) whose centre is outside
+    the photo (H, W) or whose outline reaches past its edge by more than
+    ``OUTSIDE_REACH`` of the radius: a highlight on a sphere so placed gives a wrong
+    direction rather than none (a radius of 1e9 px read every light as overhead)."""
+    h, w = shape
+    cx, cy = centre
+    if not (0 <= cx <= w and 0 <= cy <= h):
+        raise MatscanError(f"{where}: {sphere}: its centre lies outside the {w}×{h} photo")
+    past = max(radius - cx, cx + radius - w, radius - cy, cy + radius - h)
+    if past > OUTSIDE_REACH * radius:
+        raise MatscanError(
+            f"{where}: {sphere} reaches {past:.0f} px past the {w}×{h} photo's edge; give the outline of the "
+            "sphere as it lies in the photo (centre column, row and radius in pixels)"
+        )
 
 
 def highlight_weights(grey: Tensor, mask: Tensor, where: str, sphere: str) -> Tensor:
