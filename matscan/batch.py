@@ -143,15 +143,17 @@ def batch(
 ) -> dict[str, Any]:
     """``matscan batch`` (module doc). Returns the manifest."""
     from matscan.reconstruct.job import ReconstructConfig
-    from matscan.weights import anyrig_path, model_path
+    from matscan.weights import load_anyrig, load_model, model_path
 
     if workers is not None and scheduler:
         raise MatscanError("--workers: a scheduler has its own workers; give --workers or --scheduler, not both")
     cfg = cfg or ReconstructConfig()
-    if cfg.model != "none" and not (weights := model_path(cfg.model)).is_file():  # before any work, as reconstruct
-        raise input_error(weights, "no such weights file")
+    if cfg.model != "none":  # read before any work: a damaged file would fail every capture, one by one
+        if not (weights := model_path(cfg.model)).is_file():
+            raise input_error(weights, "no such weights file")
+        load_model(cfg.model)
     if cfg.anyrig != "none":
-        anyrig_path(cfg.anyrig)
+        load_anyrig(cfg.anyrig)
     if cfg.calibration is not None:  # one bad file would fail every capture, one by one
         from matscan.calibrate import check_calibration_file
 

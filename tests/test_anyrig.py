@@ -314,6 +314,20 @@ def test_bad_anyrig_weights_are_one_line_errors(tmp_path, capsys):
         assert not (tmp_path / "out" / "matscan.json").exists()
 
 
+def test_bad_anyrig_weights_are_named_where_the_dome24_networks_read_the_capture(tmp_path, capsys):
+    """On dome24 the shipped networks read the capture and the any-rig network is not
+    used, but a damaged ``--anyrig`` file is still an error: it was passed over in
+    silence, and failed later on the first capture of another rig."""
+    from matscan.cli import main
+
+    text = tmp_path / "notes.safetensors"
+    text.write_text("not weights")
+    code = main(["reconstruct", "@sample", "--out", str(tmp_path / "out"), "--anyrig", str(text), "--refine", "off"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "notes.safetensors: is not a readable safetensors file" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
 def test_the_moving_average_is_the_mean_of_the_weights_it_has_seen(tmp_path):
     """With ``ema`` the checkpoint keeps w̄ ← d·w̄ + (1 − d)·w after every step; from a
     run's own weights: after one step at decay d it is d·w0 + (1 − d)·w1 exactly, and load

@@ -310,3 +310,16 @@ def test_a_good_calibration_passes_the_batchs_check(tmp_path):
     (tmp_path / "cal.json").write_text(json.dumps({**doc, "exposure_s": -1}))
     with pytest.raises(MatscanError, match=r"cal\.json: exposure_s"):
         check_calibration_file(tmp_path / "cal.json")
+
+
+@pytest.mark.parametrize("option", ["model", "anyrig"])
+def test_damaged_weights_stop_a_batch_before_any_capture(captures, tmp_path, option):
+    from matscan.batch import batch
+    from matscan.reconstruct import ReconstructConfig
+
+    (tmp_path / "notes.safetensors").write_text("not weights")
+    cfg = ReconstructConfig(refine="off", **{option: str(tmp_path / "notes.safetensors")})
+    with pytest.raises(MatscanError, match=r"notes\.safetensors: .*safetensors") as info:
+        batch([str(captures)], tmp_path / "out", cfg, workers=1)
+    assert "\n" not in str(info.value)
+    assert not (tmp_path / "out").exists()

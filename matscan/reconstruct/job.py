@@ -738,11 +738,14 @@ def reconstruct(
             file = model_path(cfg.model).resolve()  # relative to this folder, so the record moves with it
             model_name, networks = os.path.relpath(file, claim.path), training_record(model_meta)
         anyrig, anyrig_name = None, None
-        if cfg.anyrig != "none" and (nets is None or networks_misfit(nets, capture) is not None):
+        if cfg.anyrig != "none":  # read even where unused (2 MB): a damaged file is named, not passed over
             from matscan.weights import load_anyrig
 
             anyrig = load_anyrig(cfg.anyrig)
-            anyrig_name = os.path.relpath(anyrig_path(cfg.anyrig).resolve(), claim.path)
+            if nets is None or networks_misfit(nets, capture) is not None:
+                anyrig_name = os.path.relpath(anyrig_path(cfg.anyrig).resolve(), claim.path)
+            else:
+                anyrig = None
         t_validation = time.perf_counter()
         validation = leave_out_validation(capture, cfg.validate, cfg, nets, anyrig) if cfg.validate else None
         t_validation = time.perf_counter() - t_validation
