@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from matscan import __version__
-from matscan.errors import MatscanError, input_error
+from matscan.errors import MatscanError, input_error, not_a_folder
 
 #: ``--led-gradient``'s choices (matscan.reconstruct.job.LED_GRADIENTS, not imported here:
 #: it would import torch for --help)
@@ -546,7 +546,7 @@ def cmd_rig_from_sphere(args: argparse.Namespace) -> str:
     lens = Pinhole(args.fov, principal, **distortion) if args.fov is not None else None
     folder = Path(args.folder)
     if not folder.is_dir():
-        raise MatscanError(f"{folder}: is not a folder of photos")
+        raise not_a_folder(folder, "folder of photos")
     if (folder / "capture.json").is_file():  # a capture: its photos under the lights, not its dark frame or backlight
         from matscan.jsonfile import read_json
 

@@ -18,3 +18,13 @@ class MatscanError(ValueError):
 def input_error(where: str | Path, problem: str) -> MatscanError:
     """Build a :class:`MatscanError` reading ``"<where>: <problem>"``."""
     return MatscanError(f"{where}: {problem}")
+
+
+def not_a_folder(path: str | Path, kind: str) -> MatscanError:
+    """The error for a ``kind`` folder (``"capture folder"``) that ``path`` is not: a file
+    is named as a file, and a ``capture.json`` or ``mapset.json`` as the folder's file."""
+    path = Path(path)
+    if path.is_file():
+        hint = " (give the folder that holds it)" if path.name in ("capture.json", "mapset.json") else ""
+        return input_error(path, f"is a file, not a {kind}{hint}")
+    return input_error(path, f"no such {kind}")

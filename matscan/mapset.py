@@ -37,7 +37,7 @@ from torch import Tensor
 
 from matscan.atomic import write_text
 from matscan.color import linear_to_srgb, srgb_to_linear
-from matscan.errors import MatscanError, input_error
+from matscan.errors import MatscanError, input_error, not_a_folder
 from matscan.imagefile import REC709_CHROMATICITIES, read_image, write_image
 from matscan.jsonfile import (
     check_file_name,
@@ -294,7 +294,7 @@ def read_mapset(folder: str | Path) -> MapSet:
     the file and the problem."""
     folder = maps_folder(folder)
     if not folder.is_dir():
-        raise input_error(folder, "no such map set folder")
+        raise not_a_folder(folder, "map set folder")
     meta = _read_meta(folder)
     maps: dict[str, Tensor] = {}
     for name in REQUIRED + OPTIONAL:

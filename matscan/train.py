@@ -71,7 +71,7 @@ from torch.utils.data import DataLoader, Sampler
 
 from matscan.atomic import atomic_file, write_text
 from matscan.data import DataConfig, SvbrdfDataset, fixed_validation_set
-from matscan.errors import MatscanError, input_error
+from matscan.errors import MatscanError, input_error, not_a_folder
 from matscan.jsonfile import (
     check_bool,
     check_int,
@@ -172,7 +172,7 @@ def data_config(cfg: TrainConfig) -> DataConfig:
     there (before any work)."""
     for folder in cfg.library:
         if not Path(folder).is_dir():
-            raise input_error(folder, "no such map set folder (library)")
+            raise not_a_folder(folder, "map set folder (library)")
     if not 0 <= cfg.library_prob <= 1:
         raise MatscanError(f"library_prob: {cfg.library_prob!r} must be between 0 and 1")
     if not 0 <= cfg.library_metal_prob <= 1:

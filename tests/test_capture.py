@@ -183,6 +183,14 @@ def test_not_a_capture(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(MatscanError, match="no capture.json here"):
         load_capture(tmp_path / "empty")
+    # a file where a folder belongs is named as one (it read "no such capture folder")
+    (tmp_path / "empty" / "capture.json").write_text("{}")
+    with pytest.raises(MatscanError, match=r"capture\.json: is a file, not a capture folder \(give the folder that"):
+        load_capture(tmp_path / "empty" / "capture.json")
+    from matscan.mapset import read_mapset
+
+    with pytest.raises(MatscanError, match=r"capture\.json: is a file, not a map set folder"):
+        read_mapset(tmp_path / "empty" / "capture.json")
     (tmp_path / "empty" / "capture.json").write_text("{")
     with pytest.raises(MatscanError, match=r"capture\.json: not valid JSON"):
         load_capture(tmp_path / "empty")

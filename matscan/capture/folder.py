@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from matscan.color import linear_to_srgb, srgb_to_linear
-from matscan.errors import MatscanError, input_error
+from matscan.errors import MatscanError, input_error, not_a_folder
 from matscan.imagefile import read_image, write_image
 from matscan.jsonfile import check_file_name, check_number, check_object, check_vector, dumps, read_json, short_repr
 from matscan.outputs import claim_output
@@ -285,7 +285,7 @@ class _Entry:
 def _read_document(folder: Path) -> tuple[Path, Mapping[str, Any]]:
     """``capture.json`` of a folder, parsed strictly, with its top-level keys checked."""
     if not folder.is_dir():
-        raise input_error(folder, "no such capture folder")
+        raise not_a_folder(folder, "capture folder")
     path = folder / "capture.json"
     if not path.is_file():
         raise input_error(folder, "no capture.json here (not a matscan capture folder)")

@@ -31,7 +31,7 @@ from typing import Any
 
 import torch
 
-from matscan.errors import MatscanError, input_error
+from matscan.errors import MatscanError, input_error, not_a_folder
 from matscan.imagefile import read_image
 from matscan.jsonfile import check_file_name, dumps, short_repr
 from matscan.outputs import claim_output
@@ -203,7 +203,7 @@ def import_rti(
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise input_error(folder, "is not a folder")
+        raise not_a_folder(folder, "folder of RTI photos")
     lp_path = Path(lp) if lp is not None else find_lp(folder)
     fw = float(field_width_mm) if field_width_mm is not None else RTI_FIELD_WIDTH_MM
     if not (math.isfinite(fw) and 0 < fw <= MAX_MM):
