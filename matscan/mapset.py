@@ -27,6 +27,7 @@ height range of a PNG height map.
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -35,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from matscan.atomic import write_text
+from matscan.atomic import atomic_file
 from matscan.color import linear_to_srgb, srgb_to_linear
 from matscan.errors import MatscanError, input_error, not_a_folder
 from matscan.imagefile import REC709_CHROMATICITIES, read_image, write_image
@@ -338,8 +339,10 @@ def write_mapset(
 def write_maps(
     folder: str | Path, maps: MapSet, file_format: str = "png", extra_meta: dict[str, Any] | None = None
 ) -> None:
-    """Write the map files and ``mapset.json`` into an existing folder (each file atomically),
-    replacing files of the same names. :func:`write_mapset` writes a new folder whole."""
+    """Write the map files and ``mapset.json`` into an existing folder, replacing files of
+    the same names: every file is written to a temporary first and they replace the old
+    ones together once all are written, so a write that fails (a full disk, a bad value)
+    leaves the folder as it was. :func:`write_mapset` writes a new folder whole."""
     folder = Path(folder)
     if not folder.is_dir():
         raise input_error(folder, "no such folder (write_maps writes into an existing one; write_mapset makes one)")
@@ -349,34 +352,42 @@ def write_maps(
     meta: dict[str, Any] = {"format": MAPSET_FORMAT, "size": list(maps.size), "conventions": CONVENTIONS, "files": {}}
     if extra_meta:
         meta.update(extra_meta)
-    for name, t in maps.present().items():
-        spec = SPECS[name]
-        t = t.detach().float()
-        if spec.encoding == "normal":
-            t = (normalize_normals(t) + 1) / 2
-        if file_format == "exr":
-            data, bits = t, 32
+    with ExitStack() as files:  # exits in reverse: the maps replace theirs, then mapset.json
+        meta_tmp = files.enter_context(atomic_file(folder / "mapset.json"))
+        for name, t in maps.present().items():
+            _write_one(folder, name, t, file_format, meta, files)
+        meta_tmp.write_text(dumps(meta, "mapset.json"), encoding="utf-8")
+
+
+def _write_one(folder: Path, name: str, t: Tensor, file_format: str, meta: dict[str, Any], files: ExitStack) -> None:
+    """Write one map to a temporary that replaces ``folder``'s file when ``files`` closes."""
+    spec = SPECS[name]
+    t = t.detach().float()
+    if spec.encoding == "normal":
+        t = (normalize_normals(t) + 1) / 2
+    if file_format == "exr":
+        data, bits = t, 32
+    else:
+        bits = spec.bits
+        if spec.encoding == "srgb":
+            data = linear_to_srgb(t.clamp(0, 1))
+        elif spec.encoding == "height":
+            lo, hi = float(t.min()), float(t.max())
+            meta["height"] = {"min_mm": lo, "max_mm": hi}
+            data = (t - lo) / (hi - lo) if hi > lo else torch.zeros_like(t)
         else:
-            bits = spec.bits
-            if spec.encoding == "srgb":
-                data = linear_to_srgb(t.clamp(0, 1))
-            elif spec.encoding == "height":
-                lo, hi = float(t.min()), float(t.max())
-                meta["height"] = {"min_mm": lo, "max_mm": hi}
-                data = (t - lo) / (hi - lo) if hi > lo else torch.zeros_like(t)
-            else:
-                data = t
-        file = f"{name}.{file_format}"
-        if file_format == "exr":  # the file says what it holds, for tools that never see mapset.json
-            header = {
-                "chromaticities": REC709_CHROMATICITIES,
-                "matscanMap": name,
-                "matscanConvention": CONVENTIONS.get(name, ""),
-                "matscanFrame": CONVENTIONS["frame"],
-            }
-            write_image(folder / file, data.permute(1, 2, 0).numpy(), bits=bits, header=header)
-        else:
-            colourspace = "srgb" if spec.encoding == "srgb" else "linear"
-            write_image(folder / file, data.permute(1, 2, 0).numpy(), bits=bits, colourspace=colourspace)
-        meta["files"][name] = {"file": file, "bits": bits}
-    write_text(folder / "mapset.json", dumps(meta, "mapset.json"))
+            data = t
+    file = f"{name}.{file_format}"
+    tmp = files.enter_context(atomic_file(folder / file))
+    if file_format == "exr":  # the file says what it holds, for tools that never see mapset.json
+        header = {
+            "chromaticities": REC709_CHROMATICITIES,
+            "matscanMap": name,
+            "matscanConvention": CONVENTIONS.get(name, ""),
+            "matscanFrame": CONVENTIONS["frame"],
+        }
+        write_image(tmp, data.permute(1, 2, 0).numpy(), bits=bits, header=header)
+    else:
+        colourspace = "srgb" if spec.encoding == "srgb" else "linear"
+        write_image(tmp, data.permute(1, 2, 0).numpy(), bits=bits, colourspace=colourspace)
+    meta["files"][name] = {"file": file, "bits": bits}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -201,3 +202,27 @@ def test_map_channel_counts(tmp_path):
     )
     with pytest.raises(MatscanError, match=r"roughness\.tif: has 5 channels; a map has 1 \(grey\) or 3"):
         read_mapset(tmp_path / "m")
+
+
+def test_write_maps_that_fails_part_way_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
+    """A write that fails on one map (a full disk) replaced the maps written before it,
+    leaving new diffuse and specular beside an old roughness and the old mapset.json."""
+    import matscan.mapset as mapset
+
+    folder = write_mapset(tmp_path / "set", random_maps(8, 0))
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    real = mapset.write_image
+
+    def full_disk(path, *args, **kwargs):
+        if Path(path).name.startswith(".roughness.png"):
+            raise MatscanError(f"{path}: no space left on the device; nothing was written")
+        real(path, *args, **kwargs)
+
+    monkeypatch.setattr(mapset, "write_image", full_disk)
+    with pytest.raises(MatscanError, match="no space left"):
+        mapset.write_maps(folder, random_maps(8, 1))
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before  # no temporaries either
+    monkeypatch.undo()
+    mapset.write_maps(folder, random_maps(8, 1))
+    assert (folder / "diffuse.png").read_bytes() != before["diffuse.png"]
+    torch.testing.assert_close(read_mapset(folder).roughness, random_maps(8, 1).roughness, rtol=0, atol=1e-4)
