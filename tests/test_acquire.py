@@ -70,6 +70,7 @@ def test_a_whole_capture_reconstructs_to_the_virtual_sample(tmp_path):
     cap = load_capture(tmp_path / "cap")
     assert len(cap.files) == 24 and sorted(cap.backlight) == ["blue", "blue_empty", "green", "green_empty"]
     assert cap.light_indices == tuple(range(24))
+    assert "warnings" not in cap.meta  # every key capture writes in acquisition is one matscan knows
     rec = reconstruct(tmp_path / "cap", tmp_path / "maps", ReconstructConfig())
     scores = map_scores(read_mapset(tmp_path / "maps"), maps)
     assert scores["rmse_diffuse"] < 0.02 and scores["normal_degrees"] < 2.0

@@ -19,6 +19,7 @@ import copy
 import hashlib
 import json
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -573,6 +574,17 @@ def test_a_flat_field_of_mean_one_is_applied(tmp_path):
     uneven = apply_calibration(load_capture(folder)).linear(positions=[0])[0]
     expected = np.broadcast_to(1 / flat[..., 0], (3, 8, 8))
     np.testing.assert_allclose((uneven / even).numpy(), expected, rtol=2e-3)
+
+
+def test_an_unknown_acquisition_key_is_warned_of(tmp_path):
+    """``exposure`` for ``exposure_s`` drops the calibration's exposure ratio: said, not silent."""
+    folder = make_capture(tmp_path)
+    doc = json.loads((folder / "capture.json").read_text())
+    assert "warnings" not in load_capture(folder).meta
+    doc["acquisition"] = {"camera": "virtual", "exposure": 0.005, "led_level": 0.5}
+    (folder / "capture.json").write_text(json.dumps(doc))
+    (warning,) = load_capture(folder).meta["warnings"]
+    assert re.fullmatch(r".*capture\.json: acquisition: key 'exposure' not known to matscan, ignored .*", warning)
 
 
 def test_non_utf8_rig_and_mapset_files(tmp_path, bases):

@@ -437,7 +437,26 @@ MAX_PHOTO_VALUE = 1e6
 EXPOSURE_LIMITS = (1e-9, 3600.0)
 
 
-def _read_exposure(acquisition: Any, path: Path) -> dict[str, float]:
+#: The keys ``matscan capture`` writes in ``acquisition``; any other is warned of.
+ACQUISITION_KEYS = frozenset(
+    {
+        "camera",
+        "leds",
+        "exposure_s",
+        "led_level",
+        "dark",
+        "target",
+        "frames",
+        "retakes",
+        "complete",
+        "drift_px",
+        "drift_response",
+        "chart",
+    }
+)
+
+
+def _read_exposure(acquisition: Any, path: Path) -> dict[str, Any]:
     """What ``acquisition`` says of the photos' brightness: ``exposure_s`` (where
     ``matscan capture`` set the exposure; null where the camera did) and ``led_level``
     (the LEDs' level, 0-1; 1 where a capture made before it was recorded), for
@@ -445,7 +464,13 @@ def _read_exposure(acquisition: Any, path: Path) -> dict[str, float]:
     another exposure or level by the ratio."""
     where = f"{path}: acquisition"
     check_object(acquisition, where)
-    found: dict[str, float] = {}
+    found: dict[str, Any] = {}
+    unknown = sorted(k for k in acquisition if k not in ACQUISITION_KEYS)
+    if unknown:  # a record, so not refused; but "exposure" for "exposure_s" would drop the ratio unseen
+        found["warnings"] = [
+            f"{where}: {'keys' if len(unknown) > 1 else 'key'} {', '.join(map(short_repr, unknown))} not known to "
+            "matscan, ignored (it reads exposure_s and led_level; the rest is a record of the capture)"
+        ]
     if acquisition.get("exposure_s") is not None:
         found["exposure_s"] = check_number(
             acquisition["exposure_s"], f"{where}: exposure_s", *EXPOSURE_LIMITS, positive=True
