@@ -226,6 +226,11 @@ def _read_map(path: Path, name: str, meta: dict[str, Any]) -> Tensor:
 
 #: The largest height magnitude a map set may record (1 km; real ones are millimetres).
 MAX_HEIGHT_MM = 1e6
+#: Maps whose values are fractions (0 to 1, design.md), and how far past that a float
+#: file's values may stray (an albedo a little over 1, a filter's ringing below 0) before
+#: they are taken for other units (0-255 codes, percent) and refused.
+FRACTION_MAPS = frozenset({"diffuse", "specular", "roughness", "alpha", "metallic", "basecolor"})
+FRACTION_SPAN = (-0.5, 1.5)
 #: The largest magnitude a float file's map may hold (other than a height, in mm): far
 #: beyond any meaningful albedo, F0, roughness or emission, short of overflowing a render.
 MAX_FLOAT_VALUE = 1e6
@@ -233,9 +238,10 @@ MAX_FLOAT_VALUE = 1e6
 
 def check_float_map(t: Tensor, path: Path, name: str) -> Tensor:
     """A float file's ``name`` map (any layout) with its values checked: finite, and
-    within ``MAX_HEIGHT_MM`` (heights) or ``MAX_FLOAT_VALUE`` (the rest), so a value in
-    the wrong units or a blown-up export is refused naming the file rather than failing
-    a render. Values are kept as they are."""
+    within ``MAX_HEIGHT_MM`` (heights) or ``MAX_FLOAT_VALUE`` (the rest), and for maps of
+    fractions within ``FRACTION_SPAN``, so a value in the wrong units or a blown-up export
+    is refused naming the file rather than failing a render or rendering as something
+    else. Values are kept as they are."""
     if not torch.isfinite(t).all():
         raise input_error(path, "holds NaN or infinite values")
     limit = MAX_HEIGHT_MM if name == "height" else MAX_FLOAT_VALUE
@@ -244,6 +250,12 @@ def check_float_map(t: Tensor, path: Path, name: str) -> Tensor:
         unit = " mm" if name == "height" else ""
         raise input_error(
             path, f"holds values from {lo:.4g} to {hi:.4g}{unit}; a {name} map's lie within ±{limit:g}{unit}"
+        )
+    if name in FRACTION_MAPS and not (FRACTION_SPAN[0] <= lo and hi <= FRACTION_SPAN[1]):
+        raise input_error(
+            path,
+            f"holds values from {lo:.4g} to {hi:.4g}; a {name} map's lie within 0 to 1 (is it in 0-255 codes "
+            "or percent? divide it so)",
         )
     return t
 

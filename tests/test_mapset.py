@@ -114,6 +114,9 @@ def test_output_folder_is_not_clobbered(tmp_path):
         ("diffuse", -5e6, r"diffuse\.exr: holds values from -5e\+06 to .*; a diffuse map's lie within ±1e\+06"),
         ("normal", float("nan"), r"normal\.exr: holds NaN or infinite values"),
         ("height", -3e6, r"height\.exr: holds values from -3e\+06 .* mm; a height map's lie within ±1e\+06 mm"),
+        ("roughness", 80.0, r"roughness\.exr: holds values from .* to 80; a roughness map's lie within 0 to 1 \(is"),
+        ("diffuse", 255.0, r"diffuse\.exr: holds values from .* to 255; a diffuse map's lie within 0 to 1"),
+        ("specular", -0.7, r"specular\.exr: holds values from -0\.7 to .*; a specular map's lie within 0 to 1"),
     ],
 )
 def test_float_map_files_hold_what_their_maps_can(tmp_path, name, values, words):
