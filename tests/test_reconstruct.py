@@ -9,7 +9,7 @@ import torch
 from matscan.capture import load_capture
 from matscan.capture.virtual import CameraModel, simulate
 from matscan.cli import main
-from matscan.mapset import read_mapset
+from matscan.mapset import MapSet, read_mapset
 from matscan.nets import MAPS, PRESETS, MapNets
 from matscan.reconstruct import ReconstructConfig, flat_start, predict_maps, reconstruct_capture, rerender_error
 from matscan.rig import builtin_rig
@@ -525,3 +525,54 @@ def test_reconstruct_averages_over_the_mirrors_when_asked_and_says_how_many(tmp_
     assert recs[1]["config"]["mirrors"] is True and recs[0]["config"]["mirrors"] is False
     plain, mean = read_mapset(tmp_path / "out0"), read_mapset(tmp_path / "out1")
     assert 0 < float((plain.roughness - mean.roughness).abs().mean()) < 0.1
+
+
+def _plane(size: int = 32, **extra) -> MapSet:
+    g = torch.Generator().manual_seed(1)
+    return MapSet(
+        diffuse=0.2 + 0.5 * torch.rand(3, size, size, generator=g),
+        specular=torch.full((3, size, size), 0.04),
+        roughness=torch.full((1, size, size), 0.4),
+        normal=torch.cat([torch.zeros(2, size, size), torch.ones(1, size, size)]),
+        **extra,
+    )
+
+
+def _photographed(maps, gains=None, read_noise: float = 0.0):
+    """A dome24 capture of ``maps`` under all 24 lights (linear; 16-bit with noise, else
+    float), each LED's brightness times ``gains`` where given."""
+    from matscan.capture import Capture
+    from matscan.capture.virtual import simulate_images
+
+    rig = builtin_rig("dome24")
+    lights = rig.light_set(list(range(24)))
+    shone = lights if gains is None else lights.with_intensity(lights.intensity * gains)
+    camera = CameraModel(encoding="linear", bits=16 if read_noise else 32, read_noise=read_noise)
+    photos = simulate_images(maps, shone, rig.field_mm, camera)
+    saturated = (photos >= 1 - 0.5 / 65535).any(1, keepdim=True)
+    files = tuple(f"led_{k:02d}.png" for k in range(24))
+    return Capture(rig, rig.field_mm, "linear", photos, saturated, tuple(range(24)), lights, files)
+
+
+def test_the_rerender_error_renders_emission_and_alpha():
+    """The true maps re-render noise-free photos exactly, emission and holes included
+    (the error left them out: 0.1 for an emission of 0.1 while the record said 0)."""
+    glow = _plane(emissive=torch.full((3, 32, 32), 0.1))
+    assert rerender_error(glow, _photographed(glow), [2, 6, 10]) < 1e-5
+    holes = _plane(alpha=(torch.rand(1, 32, 32, generator=torch.Generator().manual_seed(2)) > 0.3).float())
+    assert rerender_error(holes, _photographed(holes), [2, 6, 10]) < 1e-5
+    assert rerender_error(_plane(), _photographed(glow), [2, 6, 10]) > 0.05  # and it sees the emission missing
+
+
+def test_validation_scores_the_fitted_photos_as_self_calibration_saw_them():
+    """With LEDs ±20% off the rig file, self-calibration divides each photo by its gain:
+    the fitted photos' error must be measured so (it was measured on the raw photos, 5
+    times the fit's real error, and no longer showed overfitting)."""
+    from matscan.reconstruct import leave_out_validation
+
+    gains = 1 + 0.2 * (2 * torch.rand(24, 1, generator=torch.Generator().manual_seed(1)) - 1)
+    cap = _photographed(_plane(), gains, read_noise=0.002)
+    cfg = ReconstructConfig(refine="on", self_calibrate=True, led_gradient="none")
+    rec = leave_out_validation(cap, 6, cfg, None)
+    assert rec["rmse_fitted"] < 0.01  # the read noise is 0.002; the gains' error ~0.035
+    assert rec["rmse_fitted"] < rec["rmse_left_out"]  # the left-out photos' gains are unknown

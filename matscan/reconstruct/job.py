@@ -626,6 +626,18 @@ def subset_capture(capture: Capture, positions: list[int]) -> Capture:
     return capture.select(positions)
 
 
+def as_fitted(capture: Capture, res: Result) -> Capture:
+    """The capture as the fit that gave ``res`` saw it: its photos divided by the gains
+    self-calibration found, and its lights where it placed them (unchanged without)."""
+    if res.light_gains is not None:
+        from matscan.reconstruct.selfcal import with_gains
+
+        capture = with_gains(capture, res.light_gains)
+    if res.lights is not None:
+        capture = replace(capture, lights=res.lights)
+    return capture
+
+
 def leave_out_validation(
     capture: Capture, count: int, cfg: ReconstructConfig, nets: MapNets | None, anyrig: AnyRigNet | None = None
 ) -> dict:
@@ -636,11 +648,15 @@ def leave_out_validation(
         raise MatscanError(f"--validate: {count} must be between 1 and {n - 1} (the capture has {n} photos)")
     left = held_out_positions(n, count)
     kept = [i for i in range(n) if i not in left]
-    res = reconstruct_capture(subset_capture(capture, kept), cfg, nets, anyrig=anyrig)
+    subset = subset_capture(capture, kept)
+    res = reconstruct_capture(subset, cfg, nets, anyrig=anyrig)
+    # the fitted photos as the fit saw them (self-calibration's gains and places); the
+    # left-out ones' gains are unknown, so taken as 1 (docs/rti.md)
+    fitted = as_fitted(subset, res)
     record: dict[str, Any] = {
         "left_out": [capture.files[i] for i in left],
         "rmse_left_out": rerender_error(res.maps, capture, left, res.intensity_scale),
-        "rmse_fitted": rerender_error(res.maps, capture, kept, res.intensity_scale),
+        "rmse_fitted": rerender_error(res.maps, fitted, list(range(len(kept))), res.intensity_scale),
     }
     record.update(
         photo_scores(
@@ -753,12 +769,7 @@ def reconstruct(
         if validation is not None:  # its own reconstruction, without the photos it leaves out
             res.timings["validation_s"] = t_validation
         calibrated = capture  # before the gains: self_calibration.json composes with its calibration
-        if res.light_gains is not None:  # the photos as the fit saw them, for every number below
-            from matscan.reconstruct.selfcal import with_gains
-
-            capture = with_gains(capture, res.light_gains)
-        if res.lights is not None:  # and the lights where it placed them
-            capture = replace(capture, lights=res.lights)
+        capture = as_fitted(capture, res)  # the photos as the fit saw them, for every number below
         from matscan.report.html import per_light_rows, write_report
 
         # the report's per-photo re-renderings give the overall error too: one rendering pass

@@ -26,7 +26,7 @@ from tqdm import tqdm
 from matscan.capture import Capture
 from matscan.mapset import MapSet
 from matscan.reconstruct.lm import SolverConfig, reweight_passes, solve, solve_rows
-from matscan.render import flat_albedo, flat_irradiance, render, surface_points
+from matscan.render import flat_albedo, flat_irradiance, render, render_maps, surface_points
 from matscan.rig import LightSet
 
 LOG_EPS = 0.01
@@ -259,25 +259,17 @@ def _scale_floor(
 
 
 def rerender_error(maps: MapSet, capture: Capture, positions: list[int], scale: float = 1.0) -> float:
-    """RMSE between photos (at these capture positions) and renderings of ``maps``,
-    over unsaturated pixels (a band of rows at a time)."""
+    """RMSE between photos (at these capture positions) and renderings of ``maps``
+    (:func:`~matscan.render.render_maps`: emission and alpha too, as the fit and the
+    record's other numbers render them), over unsaturated pixels (a band of rows at a
+    time)."""
     lights = capture.lights.select(positions)
-    pts = surface_points(capture.field_mm, capture.size)
     total, count = 0.0, 0
     for rows in capture.strips(len(positions)):
-        r = slice(*rows)
         with torch.no_grad():
             # eager: compiling the fused kernel costs more (3.3 s at 512² × 24) than it saves once
-            img = render(
-                maps.diffuse[:, r],
-                maps.specular[:, r],
-                maps.roughness[:, r],
-                maps.normal[:, r],
-                lights,
-                pts[r],
-                compile=False,
-            )
-        img = (img * scale).clamp_(0, 1).sub_(capture.linear(positions, rows))
+            img = render_maps(maps, lights, capture.field_mm, scale, rows=rows, compile=False)
+        img = img.clamp_(0, 1).sub_(capture.linear(positions, rows))
         valid = ~capture.saturation(positions, rows).expand_as(img)
         diff = img[valid]
         total += float(diff.square().sum())
