@@ -673,6 +673,17 @@ def _check_capture_out(args: argparse.Namespace) -> None:
         raise MatscanError(f"{given}: lies in the capture {holder}; matscan never writes into a capture")
 
 
+def _ask_operator(message: str) -> None:
+    """Ask the operator at the terminal and wait for Enter; end of input (Ctrl-D) stops
+    the capture with one line, its photos kept."""
+    try:
+        input(f"matscan: {message} ")
+    except EOFError:
+        raise MatscanError(
+            "capture: no answer (end of input); the photos so far are kept: run the same command to resume"
+        ) from None
+
+
 def cmd_capture(args: argparse.Namespace) -> str:
     from matscan.capture.acquire import AcquireConfig, acquire, target_maps
     from matscan.hardware.cameras import open_camera
@@ -703,7 +714,7 @@ def cmd_capture(args: argparse.Namespace) -> str:
         camera = open_camera(
             args.camera, rig, leds, args.seed, targets, aperture=args.aperture, iso=args.iso, raw=not args.jpeg
         )
-        ask = (lambda message: input(f"matscan: {message} ")) if sys.stdin.isatty() else None
+        ask = _ask_operator if sys.stdin.isatty() else None
         try:
             record = acquire(args.out, rig, camera, leds, cfg, progress=True, ask=ask)
         except KeyboardInterrupt:

@@ -4,6 +4,8 @@ injected, and resuming byte for byte."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import re
 import shutil
 import signal
@@ -11,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -519,7 +522,20 @@ def test_folders_that_are_not_this_capture_are_refused(tmp_path):
     [
         ("[1, 2]", "line 2: is not a journal event"),
         ('{"event": "frame"}', "line 2: this frame event has no usable 'stem'"),
-        ('{"event": "frame", "stem": "led_00", "file": "../x.png", "sha256": "0"}', "'../x.png' is not a file name"),
+        (
+            '{"event": "frame", "stem": "led_00", "file": "../x.png", "sha256": "0", "kind": "led", "light": 0, '
+            '"empty": false}',
+            "'../x.png' is not a file name",
+        ),
+        (  # a frame event without its kind (it was a KeyError in the resume)
+            '{"event": "frame", "stem": "led_00", "file": "led_00.png", "sha256": "0", "light": 0, "empty": false}',
+            "line 2: this frame event has no usable 'kind'",
+        ),
+        (
+            '{"event": "frame", "stem": "led_99", "file": "led_99.png", "sha256": "0", "kind": "led", "light": 99, '
+            '"empty": false}',
+            "frame 'led_99' is not one this capture takes",
+        ),
         ('{"event": "exposure", "exposure_s": "fast"}', "this exposure event has no usable 'exposure_s'"),
         (
             '{"event": "drift", "stem": "led_00", "shift_px": 0.1, "response": 0.9, "moved": 1}',
@@ -712,3 +728,102 @@ def test_the_operator_is_asked_to_empty_the_stage(tmp_path):
 def test_acquisition_settings_out_of_range_are_refused(settings, words):
     with pytest.raises(MatscanError, match=words):
         AcquireConfig(**settings)
+
+
+def test_a_resume_with_another_sample_or_sensor_is_refused(tmp_path):
+    """The journal kept only the camera's kind ("virtual"), so a resume photographing
+    another sample, or with another seed, finished a capture of two samples."""
+    leds = VirtualLeds()
+    with pytest.raises(MatscanError, match="disconnected"):
+        acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds, fail_after=4), leds, SIX)
+    before = files(tmp_path / "cap")
+    other = small_sample()
+    other = MapSet(**{**other.present(), "diffuse": other.diffuse.flip(-1) * 0.5})
+    for camera in (VirtualCamera(other, RIG, leds), VirtualCamera(small_sample(), RIG, leds, seed=7)):
+        with pytest.raises(MatscanError, match=r"holds a capture taken with other settings \(the camera's settings\)"):
+            acquire(tmp_path / "cap", RIG, camera, leds, SIX)
+        assert files(tmp_path / "cap") == before
+    with pytest.raises(MatscanError, match=r"other settings \(--level\)"):
+        acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, replace(SIX, level=0.5))
+    acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, SIX)  # the same one resumes
+    assert len(load_capture(tmp_path / "cap").files) == 6
+
+
+def test_a_journal_line_cut_by_a_kill_does_not_swallow_the_next_events(tmp_path):
+    """A kill mid-line left a line without its newline; the next run's first event was
+    appended to it, so that event and every later one could no longer be read."""
+    from matscan.capture.acquire import Journal
+
+    leds = VirtualLeds()
+    with pytest.raises(MatscanError, match="disconnected"):
+        acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds, fail_after=4), leds, SIX)
+    journal = tmp_path / "cap" / JOURNAL
+    lines = journal.read_text().splitlines()
+    journal.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][:40])  # the last event cut mid-line
+    acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, SIX)
+    events = Journal(journal).read()
+    assert events[-1]["event"] == "complete"
+    assert all(json.loads(line) for line in journal.read_text().splitlines())  # every line whole
+    assert sorted(e["stem"] for e in events if e["event"] == "frame") == sorted(
+        ["dark"] + [f"led_{k:02d}" for k in SIX.lights]
+    )
+
+
+def test_the_exposure_recorded_is_the_one_the_camera_used(tmp_path):
+    """A tethered camera takes the nearest shutter speed not above the one asked for;
+    capture.json recorded the one asked for (0.03 s made at 1/40 s), and a calibration's
+    exposure ratio was off by that much."""
+
+    class Stepped(VirtualCamera):
+        def exposure_for(self, exposure_s):
+            return max(s for s in (1 / 100, 1 / 50, 1 / 40) if s <= exposure_s)
+
+        def shoot(self, exposure_s):
+            return super().shoot(self.exposure_for(exposure_s))
+
+    leds = VirtualLeds()
+    record = acquire(tmp_path / "cap", RIG, Stepped(small_sample(), RIG, leds), leds, replace(SIX, exposure_s=0.03))
+    assert record["exposure_s"] == pytest.approx(1 / 40)
+    assert load_capture(tmp_path / "cap").meta["exposure_s"] == pytest.approx(1 / 40)
+
+
+def test_what_the_board_or_capture_cannot_do_is_refused_before_any_photo(tmp_path):
+    leds = VirtualLeds()
+    with pytest.raises(MatscanError, match=r"rig 'flash' moves its light by hand"):
+        acquire(tmp_path / "a", builtin_rig("flash"), VirtualCamera(small_sample(), RIG, leds), leds, SIX)
+    wide = dataclasses.replace(RIG, name="dome30", lights=RIG.lights + RIG.lights[:6])
+    with pytest.raises(MatscanError, match=r"names light 25, but the LED controller .* drives 24 LEDs"):
+        acquire(tmp_path / "b", wide, VirtualCamera(small_sample(), wide, leds), leds, replace(SIX, lights=(0, 25)))
+    with pytest.raises(MatscanError, match=r"--level: 0\.0004 is not a level the LED controller makes"):
+        AcquireConfig(level=0.0004)
+    with pytest.raises(MatscanError, match=r"--level: 0\.0015 .* nearest 0\.002"):
+        AcquireConfig(level=0.0015)
+    assert AcquireConfig(level=0.25).level == 0.25
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_an_unreadable_photo_from_a_folder_camera_is_named_and_leaves_nothing(tmp_path):
+    incoming = tmp_path / "incoming"
+    incoming.mkdir()
+    leds = VirtualLeds()
+
+    class Garbage(FolderCamera):
+        def shoot(self, exposure_s):
+            threading.Timer(0.05, lambda: (incoming / "IMG_0001.png").write_bytes(b"garbage")).start()
+            return super().shoot(exposure_s)
+
+    with pytest.raises(MatscanError, match=r"incoming/IMG_0001\.png: cannot read as PNG") as info:
+        acquire(tmp_path / "cap", RIG, Garbage(incoming, timeout=10), leds, SIX)
+    assert ".partial" not in str(info.value)
+    assert sorted(p.name for p in (tmp_path / "cap").iterdir()) == [JOURNAL]
+
+
+def test_end_of_input_at_the_operators_prompt_is_one_line(monkeypatch):
+    from matscan.cli import _ask_operator
+
+    def closed(prompt):
+        raise EOFError
+
+    monkeypatch.setattr("builtins.input", closed)
+    with pytest.raises(MatscanError, match=r"capture: no answer \(end of input\); the photos so far are kept"):
+        _ask_operator("remove the sample from the stage, then press Enter")

@@ -312,6 +312,8 @@ def test_gphoto2_adapter_with_a_fake_library():
     assert widgets["iso"].value == "400"
     assert cam.shoot(0.02) == b"rawIMG_0001.CR2" and shots[-1] == "1/60"  # the longest speed not above 20 ms
     assert cam.suffix == ".cr2" and cam.actual_exposure == pytest.approx(1 / 60)
+    assert cam.exposure_for(0.02) == pytest.approx(1 / 60)  # what a capture records for it
+    assert cam.exposure_for(0.0001) == pytest.approx(1 / 1000)
     cam.shoot(0.0001)
     assert shots[-1] == "1/1000"  # shorter than any: the shortest there is
     with pytest.raises(MatscanError, match="the capture failed .* still connected"):

@@ -41,8 +41,10 @@ Never lost, never overwritten:
 
 * each photo is written under a temporary name and renamed to its final name only when
   complete and checked; a final name is never written twice;
-* ``capture.json`` is rewritten (atomically) after every frame, so the folder is a valid
-  capture of the frames so far at any moment;
+* ``capture.json`` is rewritten (atomically) after every frame, so from its first LED
+  frame on the folder is a valid capture of the frames so far at any moment (before
+  it, and for a calibration target, ``capture.json`` lists no photos under the lights
+  and reading it says so);
 * a journal (``capture.journal``, one JSON line per event, flushed to disk) records the
   settings, the exposure and every frame with its SHA-256; running the same command again
   on the folder resumes after the last frame journalled (a frame on disk but not yet
@@ -75,6 +77,8 @@ from matscan.rig import BUILTIN_RIGS, Rig, builtin_rig, rig_to_dict
 
 JOURNAL = "capture.journal"
 TARGETS = ("grey", "chart", "sphere")
+#: The LED controller's levels: thousandths of full brightness (the firmware's MAX_LEVEL).
+LEVEL_STEPS = 1000
 
 
 @dataclass(frozen=True)
@@ -97,6 +101,12 @@ class AcquireConfig:
             raise MatscanError(f"--target: {self.target!r} is not one of {', '.join(TARGETS)}")
         if not 0 < self.level <= 1:
             raise MatscanError(f"--level: {self.level!r} must be above 0 and at most 1")
+        steps = self.level * LEVEL_STEPS
+        if abs(steps - round(steps)) > 1e-6 * LEVEL_STEPS:  # the board would light another level than recorded
+            raise MatscanError(
+                f"--level: {self.level!r} is not a level the LED controller makes: it sets thousandths "
+                f"(0.001 to 1; nearest {max(1, round(steps)) / LEVEL_STEPS:g})"
+            )
         if not 0 <= self.max_saturated < 1:
             raise MatscanError(f"--max-saturated: {self.max_saturated!r} must be a fraction of the pixels, below 1")
         low, high = EXPOSURE_LIMITS
@@ -136,8 +146,36 @@ def plan(rig: Rig, cfg: AcquireConfig) -> list[Frame]:
     return frames
 
 
-def _settings(rig: Rig, cfg: AcquireConfig, camera: str, leds: str) -> dict[str, Any]:
-    return {"rig": rig_to_dict(rig), "config": asdict(cfg), "camera": camera, "leds": leds}
+def _settings(rig: Rig, cfg: AcquireConfig, camera, leds: str) -> dict[str, Any]:
+    """What a resume must find unchanged: the rig, the capture's settings, the LEDs, and the
+    camera with what it photographs by (``camera.settings``: a virtual camera's scene and
+    sensor, a folder camera's folder, a tethered camera's aperture, ISO and file type)."""
+    settings = {"rig": rig_to_dict(rig), "config": asdict(cfg), "camera": camera.name, "leds": leds}
+    if getattr(camera, "settings", None) is not None:
+        settings["camera_settings"] = camera.settings
+    return settings
+
+
+def _differences(recorded: Any, settings: dict[str, Any]) -> list[str]:
+    """Which of ``settings`` differ from a journal's ``recorded`` ones (a journal from
+    before ``camera_settings`` was recorded is compared without them)."""
+    settings = json.loads(json.dumps(settings))
+    if not isinstance(recorded, dict):
+        return ["all"]
+    if "camera_settings" not in recorded:
+        settings.pop("camera_settings", None)
+    names = []
+    for key in sorted(set(settings) | set(recorded)):
+        if key == "config" and isinstance(recorded.get(key), dict):
+            names += [
+                f"--{k.replace('_', '-')}"
+                for k in sorted(settings[key])
+                if settings[key].get(k) != recorded[key].get(k)
+            ]
+            names += [k for k in recorded[key] if k not in settings[key]]
+        elif settings.get(key) != recorded.get(key):
+            names.append({"camera_settings": "the camera's settings"}.get(key, key))
+    return names
 
 
 class Journal:
@@ -145,6 +183,7 @@ class Journal:
 
     def __init__(self, path: Path) -> None:
         self.path = path
+        self._mended = False
 
     def read(self) -> list[dict[str, Any]]:
         if not self.path.exists():
@@ -163,7 +202,25 @@ class Journal:
             events.append(event)
         return events
 
+    def mend(self) -> None:
+        """Cut a last line that a kill left unfinished (no newline at its end), so the next
+        event starts a line of its own rather than joining it (which made that event and
+        every later one unreadable)."""
+        try:
+            data = self.path.read_bytes()
+        except FileNotFoundError:
+            return
+        if not data or data.endswith(b"\n"):
+            return
+        with open(self.path, "r+b") as f:
+            f.truncate(data.rfind(b"\n") + 1)
+            f.flush()
+            os.fsync(f.fileno())
+
     def append(self, event: dict[str, Any]) -> None:
+        if not self._mended:
+            self.mend()
+            self._mended = True
         with open(self.path, "a", encoding="utf-8") as f:
             f.write(json.dumps(event, sort_keys=True) + "\n")
             f.flush()
@@ -174,7 +231,7 @@ class Journal:
 _EVENT_FIELDS: dict[str, dict[str, type | tuple[type, ...]]] = {
     "start": {"settings": dict},
     "exposure": {"exposure_s": (int, float)},
-    "frame": {"stem": str, "file": str, "sha256": str},
+    "frame": {"stem": str, "file": str, "sha256": str, "kind": str, "light": (int, type(None)), "empty": bool},
     "drift": {"stem": str, "shift_px": (int, float), "response": (int, float), "moved": bool},  # and textured
 }
 
@@ -352,12 +409,24 @@ def acquire(
 
     out = Path(out)
     frames = plan(rig, cfg)
-    settings = _settings(rig, cfg, camera.name, leds.name)
+    if rig.per_image_geometry:
+        raise MatscanError(
+            f"capture: rig {rig.name!r} moves its light by hand (per-photo geometry); matscan capture drives a "
+            "fixed rig's LEDs: photograph such a capture yourself and write its capture.json"
+        )
+    lights = list(cfg.lights) if cfg.lights is not None else list(range(len(rig.lights)))
+    board = getattr(leds, "n_leds", None)
+    if board is not None and lights and max(lights) >= board:
+        raise MatscanError(
+            f"capture: rig {rig.name!r} names light {max(lights)}, but the LED controller {leds.name!r} drives "
+            f"{board} LEDs (0 to {board - 1})"
+        )
+    settings = _settings(rig, cfg, camera, leds.name)
     with output_lock(out):
         journal = Journal(out / JOURNAL)
         events = _open_folder(out, journal, settings)
         state = _replay(out, events, frames, journal)
-        exposure = state.exposure_s if camera.controls_exposure else None
+        exposure = _used(camera, state.exposure_s) if camera.controls_exposure else None
         done = {d["stem"] for d in state.done}
         dark = reference = first = None
         for d in state.done:
@@ -386,6 +455,7 @@ def acquire(
                     exposure, tests = choose_exposure(
                         lambda k, e: _test_shot(camera, leds, k, e, cfg.level, out), led_frames, cfg
                     )
+                exposure = _used(camera, exposure)
                 journal.append({"event": "exposure", "exposure_s": exposure, "tests": tests})
             bar = tqdm(total=len(frames), initial=len(done), desc="capture", unit="photo", disable=not progress)
             darks: dict[float, float] = {}  # the dark frame at longer exposures (_take)
@@ -444,11 +514,12 @@ def _open_folder(out: Path, journal: Journal, settings: dict[str, Any]) -> list[
         events = journal.read()
         if not events or events[0].get("event") != "start":
             raise input_error(out, "exists and is not an interrupted matscan capture; choose another --out")
-        if events[0].get("settings") != json.loads(json.dumps(settings)):
+        differ = _differences(events[0].get("settings"), settings)
+        if differ:
             raise input_error(
                 out,
-                "holds a capture taken with other settings (rig, lights, camera, LEDs or checks); "
-                "resume it with the same command, or choose another --out",
+                f"holds a capture taken with other settings ({', '.join(differ)}); resume it with the same "
+                "command and camera, or choose another --out",
             )
         return events
     out.mkdir(parents=True, exist_ok=True)
@@ -469,6 +540,10 @@ def _replay(out: Path, events: list[dict[str, Any]], frames: list[Frame], journa
         elif e.get("event") == "drift":
             state.drift = e
         elif e.get("event") == "frame":
+            if e["stem"] not in by_stem or by_stem[e["stem"]].kind != e["kind"]:
+                raise input_error(
+                    out / JOURNAL, f"frame {e['stem']!r} is not one this capture takes; this capture cannot be resumed"
+                )
             path = out / e["file"]
             if not path.is_file() or _sha256(path.read_bytes()) != e["sha256"]:
                 raise input_error(path, "is missing or changed since it was taken; this capture cannot be resumed")
@@ -502,6 +577,14 @@ def _entry(frame: Frame, file: str, data: bytes, checks: dict[str, float], attem
     }
 
 
+def _used(camera, exposure: float | None) -> float | None:
+    """The exposure a camera takes ``exposure`` as (a tethered camera's nearest shutter
+    speed not above it): what the photos were made at, so what capture.json records."""
+    if exposure is None or not hasattr(camera, "exposure_for"):
+        return exposure
+    return camera.exposure_for(exposure)
+
+
 def _light(leds, illumination: Illumination) -> None:
     if illumination.led is not None:
         leds.led(illumination.led, illumination.level)
@@ -526,6 +609,9 @@ def _shot(camera, leds, illumination: Illumination, exposure: float, out: Path):
     tmp.write_bytes(data)
     try:
         return read_image(tmp)
+    except MatscanError as exc:  # named as the camera's photo, not the temporary copy
+        source = getattr(camera, "last_file", None) or f"the {camera.name} camera's check photo"
+        raise MatscanError(str(exc).replace(str(tmp), str(source), 1)) from None
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -650,7 +736,12 @@ def _take(
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        image = read_image(tmp)
+        try:
+            image = read_image(tmp)
+        except MatscanError as exc:  # named as the camera's photo, not the temporary copy
+            tmp.unlink(missing_ok=True)
+            source = getattr(camera, "last_file", None) or f"the {camera.name} camera's {frame.stem} photo"
+            raise MatscanError(str(exc).replace(str(tmp), str(source), 1)) from None
         checks, problem = frame_checks(frame, image, dark, reference and reference[0], cfg)
         if problem is not None and problem[0] == "dark" and "dark" not in asked:
             asked.add("dark")

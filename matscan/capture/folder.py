@@ -344,7 +344,13 @@ def _per_image_light(entry: Mapping[str, Any], rig: Rig, where: str) -> tuple[Li
 
 def _read_entries(raw: Any, rig: Rig, path: Path, lights: Sequence[int] | None) -> list[_Entry]:
     """The checked ``images`` entries, keeping only ``lights`` (all when None)."""
-    if not isinstance(raw, (list, tuple)) or not raw:
+    if isinstance(raw, (list, tuple)) and not raw:
+        raise input_error(
+            path,
+            "images: lists no photos (matscan capture lists none until its first LED frame: run the same "
+            "command to resume a capture stopped before it; a chart target's capture holds only its chart photo)",
+        )
+    if not isinstance(raw, (list, tuple)):
         raise input_error(path, "images: expected a non-empty list of {light, file} entries")
     keys = _IMAGE_KEYS_PER_IMAGE if rig.per_image_geometry else _IMAGE_KEYS_INDEXED
     required = ("file", "light_position_mm", "camera_position_mm") if rig.per_image_geometry else ("light", "file")

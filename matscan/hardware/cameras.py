@@ -2,7 +2,8 @@
 
 A camera has a ``name``, the file ``suffix`` of its frames, whether it
 ``controls_exposure``, ``shoot(exposure_s) -> bytes`` (one frame's file, as the camera
-wrote it) and ``close()``. The capture job writes those bytes under the frame's final
+wrote it), ``settings`` (what it photographs by, which a resumed capture must find
+unchanged) and ``close()``. The capture job writes those bytes under the frame's final
 name only once they are complete and checked.
 
 * :class:`VirtualCamera` renders a map set through the rig under whatever the LED
@@ -52,6 +53,7 @@ class VirtualCamera:
         self.leds = leds
         self.camera = camera or CameraModel(read_noise=0.002, encoding="srgb", bits=16)
         self.seed = seed
+        self.settings = {"scene": _scene_digest(maps), "seed": seed, "sensor": _sensor(self.camera)}
         self.sample_present = True
         self.fail_after = fail_after  # a fault for tests: the camera disconnects after this many frames
         self.shots = 0
@@ -100,6 +102,21 @@ class VirtualCamera:
         pass
 
 
+def _scene_digest(maps) -> str:
+    """A short digest of a map set's values: which sample a virtual camera photographs."""
+    digest = hashlib.sha256()
+    for name, t in sorted(maps.present().items()):
+        digest.update(name.encode())
+        digest.update(t.detach().float().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def _sensor(camera) -> dict:
+    from dataclasses import asdict
+
+    return {k: v for k, v in asdict(camera).items() if isinstance(v, (int, float, str, bool)) or v is None}
+
+
 def _empty_stage(maps):
     """The stage alone: the maps with alpha 0 everywhere (what the backlight shows empty)."""
     from matscan.mapset import MapSet
@@ -130,6 +147,8 @@ class FolderCamera:
         self.keepalive = keepalive
         self.seen = set(self._files())
         self.suffix = ".png"
+        self.settings = {"folder": str(self.folder.resolve())}
+        self.last_file: Path | None = None  # the file the last shot read
 
     def _files(self) -> list[Path]:
         return [p for p in self.folder.iterdir() if p.is_file() and p.suffix.lower() in FOLDER_SUFFIXES]
@@ -147,6 +166,7 @@ class FolderCamera:
                     time.sleep(self.settle)
                 self.seen.add(path)
                 self.suffix = path.suffix.lower()
+                self.last_file = path
                 return path.read_bytes()
             if self.keepalive is not None and time.monotonic() - ping > 1.0:
                 self.keepalive()
@@ -190,6 +210,7 @@ class Gphoto2Camera:
             raise MatscanError(f"camera gphoto2: no camera found or it is busy ({exc})") from None
         self.suffix = ".cr2" if raw else ".jpg"
         self.exposure: float | None = None
+        self.settings = {"aperture": aperture, "iso": iso, "raw": raw}
         self.set("imageformat", "RAW" if raw else "Large Fine JPEG", required=False)
         if aperture:
             self.set("aperture", aperture)
@@ -229,13 +250,24 @@ class Gphoto2Camera:
                 out.append((s, text))
         return sorted(out)
 
+    def _speed(self, exposure_s: float) -> tuple[float, str] | None:
+        """The shutter speed taken for ``exposure_s``: the longest not above it (the
+        shortest, if all are longer); None for a camera without the setting."""
+        choices = self.shutter_choices()
+        if not choices:
+            return None
+        return ([c for c in choices if c[0] <= exposure_s * 1.0001] or choices[:1])[-1]
+
+    def exposure_for(self, exposure_s: float) -> float:
+        """The exposure (s) a frame asked for at ``exposure_s`` is made at."""
+        speed = self._speed(exposure_s)
+        return exposure_s if speed is None else speed[0]
+
     def shoot(self, exposure_s: float) -> bytes:
         gp = self.gp
-        choices = self.shutter_choices()
-        if choices:
-            # the longest speed not above the request (the shortest, if all are longer)
-            fitting = [c for c in choices if c[0] <= exposure_s * 1.0001] or choices[:1]
-            seconds, text = fitting[-1]
+        speed = self._speed(exposure_s)
+        if speed is not None:
+            seconds, text = speed
             if seconds != self.exposure:
                 self.set("shutterspeed", text)
                 self.exposure = seconds
