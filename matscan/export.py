@@ -55,9 +55,13 @@ def _metal_rough(maps: MapSet) -> tuple[torch.Tensor, torch.Tensor]:
     return specular_to_metallic(maps.diffuse, maps.specular)
 
 
-def write_textures(folder: Path, maps: MapSet) -> dict[str, str]:
-    """The PNG textures the glTF and MaterialX documents read; returns their file names."""
-    base, metal = _metal_rough(maps)
+def write_textures(
+    folder: Path, maps: MapSet, split: tuple[torch.Tensor, torch.Tensor] | None = None
+) -> dict[str, str]:
+    """The PNG textures the glTF and MaterialX documents read, with the metal/rough
+    ``split`` given (:func:`specular_split`; the plain conversion by default); returns
+    their file names."""
+    base, metal = split if split is not None else _metal_rough(maps)
     files = {}
     rgb = linear_to_srgb(base.clamp(0, 1))
     if maps.alpha is not None:
@@ -82,6 +86,38 @@ def write_textures(folder: Path, maps: MapSet) -> dict[str, str]:
         write_image(folder / "tex_opacity.png", _hwc(maps.alpha.clamp(0, 1)), bits=8, colourspace="linear")
         files["opacity"] = "tex_opacity.png"
     return files
+
+
+def specular_split(maps: MapSet) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(base colour, metallic, dielectric F0) for exports that carry a specular colour
+    (glTF's KHR_materials_specular, MaterialX's specular_color and IOR).
+
+    Both mix a dielectric lobe and a metal one by metallic m (glTF 2.0 Appendix B; Standard
+    Surface's metalness): F0 = (1 − m)·F0_dielectric + m·baseColor. Texels the plain
+    metal/rough conversion gives back (F0 within ``SPLIT_TOLERANCE``) keep it, so viewers
+    without the extension still see them right; the others, where their F0 can be a
+    dielectric's (at most ``MAX_DIELECTRIC_F0``), become dielectrics (metallic 0, base colour
+    the diffuse, F0 the map's). The dielectric F0 is then (F0 − m·baseColor)/(1 − m)
+    everywhere (0.04 where a texel is all metal, where it has no weight)."""
+    base, metal = _metal_rough(maps)
+    _, back = metallic_to_specular(base, metal)
+    missed = (back - maps.specular).abs().amax(dim=-3, keepdim=True) > SPLIT_TOLERANCE
+    plain = missed & (maps.specular.amax(dim=-3, keepdim=True) <= MAX_DIELECTRIC_F0)
+    metal = torch.where(plain, torch.zeros_like(metal), metal)
+    base = torch.where(plain, maps.diffuse.clamp(0, 1), base)
+    rest = 1 - metal
+    part = ((maps.specular - metal * base) / rest.clamp_min(1e-3)).clamp(0, MAX_DIELECTRIC_F0)
+    return base, metal, torch.where(rest > 1e-3, part, torch.full_like(part, DIELECTRIC_F0))
+
+
+#: How far (F0, any channel) the metal/rough conversion may miss a texel's F0 and keep it
+#: in an export with a specular colour.
+SPLIT_TOLERANCE = 0.005
+#: The largest dielectric F0 the exports write (diamond's is 0.17): the split leaves the
+#: dielectric part near 0.04 wherever metallic is above 0, and only near-metal texels,
+#: where the part weighs almost nothing, could push it past this by dividing rounding
+#: errors by 1 − metallic (and with it the glTF texture's factor, coarsening every texel).
+MAX_DIELECTRIC_F0 = 0.25
 
 
 def specular_residual(maps: MapSet) -> float:
@@ -245,12 +281,15 @@ def materialx_document(textures: dict[str, Any], name: str = "material") -> str:
     need them), feeding a ``standard_surface``.
 
     F0 mapping: standard_surface's dielectric reflectance at normal incidence is
-    ``specular · specular_color · ((IOR − 1)/(IOR + 1))²``; with IOR 1.5 the last factor is
-    0.04, so F0 = 0.04 · specular · specular_color. Where the maps need more than the
-    metal/rough conversion gives (``textures["specular_color"]``, the glTF
-    KHR_materials_specular texture holding F0/0.04 ÷ its factor, sRGB-encoded), that
-    texture is ``specular_color`` and its factor is ``specular``; otherwise specular 1 and
-    white, F0 0.04. Metals take F0 from ``base_color`` through ``metalness``.
+    ``specular_color · ((IOR − 1)/(IOR + 1))²`` (and at grazing ``specular_color``), with
+    ``specular`` its weight, which also sets how much light the layer takes from the
+    diffuse beneath (so it stays 1: a weight above 1 darkened the diffuse and turned the
+    metals' edge colour into a negative IOR). Where the maps need more than the metal/rough
+    conversion gives (``textures["specular_tint"]`` and ``["specular_f0"]``: the dielectric
+    part's F0, :func:`specular_split`, as its hue, largest channel 1, sRGB-encoded, and that
+    largest channel, raw), the hue is ``specular_color`` and the IOR is computed per texel
+    in the nodegraph, (1 + √F0)/(1 − √F0); otherwise white and IOR 1.5, F0 0.04. Metals
+    take F0 from ``base_color`` through ``metalness``.
     """
     import MaterialX as mx
 
@@ -279,12 +318,23 @@ def materialx_document(textures: dict[str, Any], name: str = "material") -> str:
     normal.setConnectedNode("in", image("normal", "vector3"))
     connect("normal", normal, "vector3")
     surface.setInputValue("base", 1.0, "float")
-    surface.setInputValue("specular_IOR", MTLX_IOR, "float")
-    if "specular_color" in textures:
-        connect("specular_color", image("specular_color", "color3", srgb=True), "color3")
-        surface.setInputValue("specular", float(textures.get("specular_color_factor", 1.0)), "float")
+    surface.setInputValue("specular", 1.0, "float")
+    if "specular_f0" in textures:
+        connect("specular_color", image("specular_tint", "color3", srgb=True), "color3")
+        root = graph.addNode("sqrt", "specular_sqrt_f0", "float")
+        root.setConnectedNode("in", image("specular_f0", "float"))
+        over = graph.addNode("add", "specular_ior_over", "float")
+        over.setConnectedNode("in1", root)
+        over.setInputValue("in2", 1.0, "float")
+        under = graph.addNode("subtract", "specular_ior_under", "float")
+        under.setInputValue("in1", 1.0, "float")
+        under.setConnectedNode("in2", root)
+        ior = graph.addNode("divide", "specular_ior", "float")
+        ior.setConnectedNode("in1", over)
+        ior.setConnectedNode("in2", under)
+        connect("specular_IOR", ior, "float")
     else:
-        surface.setInputValue("specular", 1.0, "float")
+        surface.setInputValue("specular_IOR", MTLX_IOR, "float")
     if "emissive" in textures:
         connect("emission_color", image("emissive", "color3", srgb=True), "color3")
         surface.setInputValue("emission", 1.0, "float")
@@ -343,7 +393,7 @@ def usd_files(
     material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
     reader = UsdShade.Shader.Define(stage, f"/Root/Looks/{name}/stReader")
     reader.CreateIdAttr("UsdPrimvarReader_float2")
-    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("st")
+    reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")  # string, as the shader registry has it
     reader_out = reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
 
     def texture(key: str, srgb: bool, **extra: Any) -> Any:
@@ -381,15 +431,26 @@ def export_all(
     folder: Path, maps: MapSet, field_mm: tuple[float, float], exr: bool = False, directx_normals: bool = False
 ) -> list[str]:
     """Write the exports into an existing output folder; returns the files written."""
-    textures = write_textures(folder, maps)
+    coloured = specular_residual(maps) > SPECULAR_EXTENSION_THRESHOLD
+    base, metal, dielectric = specular_split(maps) if coloured else (*_metal_rough(maps), None)
+    textures = write_textures(folder, maps, (base, metal))
     written = list(textures.values())
-    if specular_residual(maps) > SPECULAR_EXTENSION_THRESHOLD:
-        ratio = (maps.specular / DIELECTRIC_F0).clamp(0, 25)
+    if dielectric is not None:
+        # glTF (KHR_materials_specular): the dielectric F0 is min(0.04 · colour · factor, 1)
+        ratio = (dielectric / DIELECTRIC_F0).clamp(0, 25)
         factor = max(1.0, float(ratio.max()))
         write_image(folder / "tex_specular_color.png", _hwc(linear_to_srgb(ratio / factor)), bits=8, colourspace="srgb")
         textures["specular_color"] = "tex_specular_color.png"
         textures["specular_color_factor"] = factor  # type: ignore[assignment]
-        written.append("tex_specular_color.png")
+        # MaterialX (standard_surface): F0 = specular_color · ((IOR − 1)/(IOR + 1))², the
+        # colour the F0's hue (its largest channel 1) and the IOR its size, texel by texel
+        peak = dielectric.amax(dim=0, keepdim=True).clamp_min(1e-4)
+        tint = (dielectric / peak).clamp(0, 1)
+        write_image(folder / "tex_specular_tint.png", _hwc(linear_to_srgb(tint)), bits=8, colourspace="srgb")
+        write_image(folder / "tex_specular_f0.png", _hwc(peak), bits=16, colourspace="linear")
+        textures["specular_tint"] = "tex_specular_tint.png"
+        textures["specular_f0"] = "tex_specular_f0.png"
+        written += ["tex_specular_color.png", "tex_specular_tint.png", "tex_specular_f0.png"]
     doc = gltf_document(maps, field_mm, textures, folder)
     (folder / "material.gltf").write_text(dumps(doc, "material.gltf"), encoding="utf-8")
     (folder / "material.glb").write_bytes(glb_bytes(doc, folder))

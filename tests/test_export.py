@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from matscan.brdf import metallic_to_specular
+from matscan.brdf import DIELECTRIC_F0, metallic_to_specular
 from matscan.color import srgb_to_linear
 from matscan.export import export_all, specular_residual
 from matscan.imagefile import read_image
@@ -79,8 +79,7 @@ def test_alpha_and_specular_extension(tmp_path):
     assert mat.alphaMode == "MASK" and mat.alphaCutoff == 0.5
     assert "KHR_materials_specular" in gltf.extensionsUsed
     ext = json.loads((tmp_path / "material.gltf").read_text())["materials"][0]["extensions"]["KHR_materials_specular"]
-    # specularColor · 0.04 gives F0 back: 0.09 / 0.04 = 2.25 at most → factor 2.25
-    assert ext["specularColorFactor"][0] == pytest.approx(2.25, rel=1e-4)
+    assert ext["specularColorFactor"][0] > 1  # F0 over 0.04: the colour texture is scaled up
     rgba = read_image(tmp_path / "tex_basecolor.png").pixels
     assert rgba.shape[2] == 4 and rgba[0, 1, 3] == 1.0 and rgba[0, 0, 3] == 0.0
 
@@ -214,19 +213,76 @@ def test_materialx_translates_to_usd_preview_surface(tmp_path):
     assert shader.getCategory() == "UsdPreviewSurface"
 
 
+def _linear(path) -> torch.Tensor:
+    return srgb_to_linear(torch.from_numpy(read_image(path).pixels)).permute(2, 0, 1)
+
+
+def _raw(path) -> torch.Tensor:
+    return torch.from_numpy(read_image(path).pixels).permute(2, 0, 1)
+
+
+def _graph_value(node, folder) -> torch.Tensor:
+    """What a MaterialX nodegraph output computes, for the node kinds the export uses
+    (image, sqrt, add, subtract, divide), evaluated here from the MaterialX document."""
+    kind = node.getCategory()
+    if kind == "image":
+        file = folder / node.getInputValue("file")
+        srgb = node.getInput("file").getColorSpace() == "srgb_texture"
+        return _linear(file) if srgb else _raw(file)
+
+    def arg(name):
+        port = node.getInput(name)
+        upstream = port.getConnectedNode()
+        return _graph_value(upstream, folder) if upstream is not None else torch.tensor(float(port.getValue()))
+
+    if kind == "sqrt":
+        return arg("in").sqrt()
+    ops = {"add": torch.add, "subtract": torch.sub, "divide": torch.div}
+    return ops[kind](arg("in1"), arg("in2"))
+
+
+def _surface_input(surface, name, folder) -> torch.Tensor:
+    port = surface.getInput(name)
+    if port.getConnectedOutput() is None:
+        return torch.tensor(float(port.getValue()))
+    return _graph_value(port.getConnectedOutput().getConnectedNode(), folder)
+
+
+def _metal_rough_read(folder) -> tuple[torch.Tensor, torch.Tensor]:
+    return _linear(folder / "tex_basecolor.png")[:3], _raw(folder / "tex_metallic.png")
+
+
+def _mixed_maps(size: int = 8) -> MapSet:
+    """Texels of three kinds: a dielectric of F0 0.01 (below the 0.04 metal/rough gives
+    dielectrics, so an export needs a specular colour), F0 0.2 over diffuse 0.3 (which
+    metal/rough gives exactly, as metallic 0.37), and a gold metal."""
+    diffuse, specular = torch.full((3, size, size), 0.5), torch.full((3, size, size), 0.01)
+    diffuse[:, size // 2 :], specular[:, size // 2 :] = 0.3, 0.2
+    diffuse[:, 0, 0], specular[:, 0, 0] = 0.0, torch.tensor([0.9, 0.7, 0.3])
+    normal = torch.zeros(3, size, size)
+    normal[2] = 1
+    return MapSet(diffuse, specular, torch.full((1, size, size), 0.3), normal)
+
+
 def test_materialx_carries_the_specular_map(tmp_path):
-    # standard_surface's dielectric F0 is specular * specular_color * ((IOR - 1)/(IOR + 1))^2
-    # (Autodesk Standard Surface 1.0, "Specular"): computed from the file it must give the map
-    maps = _maps(coloured_dielectric=True)
+    """Standard Surface (Autodesk 1.0, "Specular" and "Metalness"): a dielectric layer of
+    weight ``specular`` with F0 = specular_color · ((IOR − 1)/(IOR + 1))², mixed by
+    metalness with a metal of F0 base_color. The weight must stay 1 (it also sets what the
+    layer takes from the diffuse beneath: 22.4 there darkened the diffuse to 6%), and the
+    mix must give the maps' F0 on texels that are partly metallic too."""
+    maps = _mixed_maps()
     export_all(tmp_path, maps, (10.0, 10.0))
     doc = _mtlx(tmp_path / "material.mtlx")
     surface = doc.getNode("material_surface")
-    ior = surface.getInputValue("specular_IOR")
-    weight = surface.getInputValue("specular")
-    colour_file = surface.getInput("specular_color").getConnectedOutput().getConnectedNode().getInputValue("file")
-    colour = srgb_to_linear(torch.from_numpy(read_image(tmp_path / colour_file).pixels)).permute(2, 0, 1)
-    f0 = weight * colour * ((ior - 1) / (ior + 1)) ** 2
-    assert float((f0 - maps.specular).abs().max()) < 0.002  # 8-bit sRGB texture
+    assert surface.getInputValue("specular") == 1.0
+    ior = _surface_input(surface, "specular_IOR", tmp_path)
+    tint = _surface_input(surface, "specular_color", tmp_path)
+    assert float(tint.max()) <= 1.0 and float(ior.min()) >= 1.0
+    base, metal = _metal_rough_read(tmp_path)
+    assert bool(((metal > 0.05) & (metal < 0.95)).any())  # the case that went wrong: metal and dielectric mixed
+    f0 = (1 - metal) * tint * ((ior - 1) / (ior + 1)) ** 2 + metal * base
+    assert float((f0 - maps.specular).abs().max()) < 0.006  # 8-bit textures (the gold: 0.9 at 1/255)
+    assert float(((1 - metal) * base - maps.diffuse).abs().max()) < 0.006
     # without a specular texture: white and weight 1, F0 0.04 as the metal/rough conversion gives
     (tmp_path / "plain").mkdir()
     export_all(tmp_path / "plain", _maps(), (10.0, 10.0))
@@ -235,6 +291,23 @@ def test_materialx_carries_the_specular_map(tmp_path):
     assert plain.getInput("specular_color") is None and plain.getInputValue("specular") == 1.0
     ior = plain.getInputValue("specular_IOR")
     assert abs(((ior - 1) / (ior + 1)) ** 2 - 0.04) < 1e-9
+
+
+def test_gltf_specular_extension_gives_the_maps_f0_on_mixed_texels(tmp_path):
+    """KHR_materials_specular (its "Implementation"): the dielectric F0 is
+    min(0.04 · specularColor, 1) · specular, and glTF 2.0 Appendix B mixes that with the
+    metal's baseColor by metallic. The colour texture held the whole F0 / 0.04, so partly
+    metallic texels counted the metal's share twice (F0 0.2 read as 0.30)."""
+    maps = _mixed_maps()
+    export_all(tmp_path, maps, (10.0, 10.0))
+    ext = json.loads((tmp_path / "material.gltf").read_text())["materials"][0]["extensions"]["KHR_materials_specular"]
+    colour = _linear(tmp_path / "tex_specular_color.png") * torch.tensor(ext["specularColorFactor"]).view(3, 1, 1)
+    dielectric = (DIELECTRIC_F0 * colour).clamp(max=1) * ext["specularFactor"]
+    base, metal = _metal_rough_read(tmp_path)
+    assert bool(((metal > 0.05) & (metal < 0.95)).any())
+    f0 = (1 - metal) * dielectric + metal * base
+    assert float((f0 - maps.specular).abs().max()) < 0.006
+    assert float(((1 - metal) * base - maps.diffuse).abs().max()) < 0.006
 
 
 def test_usd_stage_binds_a_preview_surface_reading_the_textures(tmp_path):
@@ -421,6 +494,30 @@ def _numbers_apart(a: str, b: str) -> float:
     return max((abs(x - y) / max(abs(x), 1e-12) for x, y in pairs), default=0.0)
 
 
+#: The textures that hold the metal/rough split and the specular colour.
+SPLIT_TEXTURES = (
+    "tex_basecolor.png",
+    "tex_metallic.png",
+    "tex_metallic_roughness.png",
+    "tex_specular_color.png",
+    "tex_specular_tint.png",
+    "tex_specular_f0.png",
+)
+
+
+def _material_read(folder) -> torch.Tensor:
+    """The diffuse and F0 an export's glTF textures say, and the F0 its MaterialX
+    textures say, stacked (glTF 2.0 Appendix B with KHR_materials_specular; Standard
+    Surface's F0 from specular_color and an IOR from F0, as the nodegraph computes it)."""
+    factor = json.loads((folder / "material.gltf").read_text())["materials"][0]["extensions"]
+    factor = factor["KHR_materials_specular"]["specularColorFactor"][0]
+    base, metal = _metal_rough_read(folder)
+    gltf = _linear(folder / "tex_specular_color.png") * factor * DIELECTRIC_F0
+    mtlx = _linear(folder / "tex_specular_tint.png") * _raw(folder / "tex_specular_f0.png")
+    mix = [(1 - metal) * part + metal * base for part in (gltf, mtlx)]
+    return torch.cat([(1 - metal) * base, *mix])
+
+
 def test_export_of_a_reconstruction_writes_its_exports_again(tmp_path):
     """What ``reconstruct`` wrote from its maps in memory, ``export`` writes again from the
     maps it saved: the same bytes, but where the specular map's 8-bit sRGB file shows (the
@@ -436,9 +533,11 @@ def test_export_of_a_reconstruction_writes_its_exports_again(tmp_path):
     assert {"material.gltf", "tex_normal.png", "tex_specular_color.png"} <= set(made)  # the sample's F0 is tinted
     for name in made:
         rec, exp = tmp_path / "rec" / name, tmp_path / "exp" / name
-        if name == "tex_specular_color.png":
-            codes = read_image(rec).stored.astype(int) - read_image(exp).stored.astype(int)
-            assert np.abs(codes).max() <= 1
+        if name in SPLIT_TEXTURES:
+            # made from F0 and diffuse as their 8-bit files hold them, so a texel may be split
+            # otherwise between metal and dielectric: what they say is the same
+            a, b = (_material_read(folder) for folder in (tmp_path / "rec", tmp_path / "exp"))
+            assert float((a - b).abs().max()) < 0.01, name
         elif name in ("material.gltf", "material.mtlx"):
             assert _numbers_apart(rec.read_text(), exp.read_text()) < 0.01, name
         elif name not in ("material.glb", "material.usdz"):  # these hold the files above
