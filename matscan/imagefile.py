@@ -19,7 +19,7 @@ import sys
 import tempfile
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -192,6 +192,10 @@ def _read_tiff(path: Path) -> ImageData:
     with tifffile.TiffFile(str(path)) as tif:
         series = tif.series[0]  # the full-resolution image; later series are previews
         axes, arr = series.axes, np.asarray(series.asarray())
+    single = [i for i, a in enumerate(axes) if arr.shape[i] == 1 and a not in "YX"]  # a one-page "stack"
+    if single:
+        arr = arr.squeeze(axis=tuple(single))
+        axes = "".join(a for i, a in enumerate(axes) if i not in single)
     # Samples are stored either interleaved (YXS) or one plane per channel (SYX, the
     # "planar" layout); any other axis (pages, Z, time) makes the file a stack.
     if axes in ("YX", "YXS", "YXC"):
@@ -242,7 +246,12 @@ PNG_COLOURSPACES = ("srgb", "linear")
 
 
 def write_image(
-    path: str | Path, pixels: np.ndarray, bits: int = 8, header: dict | None = None, colourspace: str | None = None
+    path: str | Path,
+    pixels: np.ndarray,
+    bits: int = 8,
+    header: dict | None = None,
+    colourspace: str | None = None,
+    atomic: bool = True,
 ) -> None:
     """Write (H, W, C) pixels; C in {1, 3, 4}; RGB order.
 
@@ -251,7 +260,8 @@ def write_image(
     ``header`` adds attributes to an EXR file (strings, or numbers and tuples such as
     ``chromaticities``). ``colourspace`` marks a PNG: ``"srgb"`` (sRGB, gAMA 1/2.2 and
     cHRM chunks: the values are sRGB-encoded) or ``"linear"`` (gAMA 1.0 and cHRM: data
-    or linear values), so viewers and engines need not guess.
+    or linear values), so viewers and engines need not guess. ``atomic=False`` writes
+    ``path`` directly (a temporary that a caller's own atomic write renames).
     """
     if colourspace is not None and colourspace not in PNG_COLOURSPACES:
         raise MatscanError(f"{path}: colour space {colourspace!r} is not one of {', '.join(PNG_COLOURSPACES)}")
@@ -264,7 +274,7 @@ def write_image(
         raise MatscanError(f"{path}: cannot write {suffix or 'files without an ending'} (use .png, .tif or .exr)")
     if suffix in PNG_LIKE and (bits not in (8, 16) or (bits == 16 and suffix != ".png")):
         raise MatscanError(f"{path}: {suffix[1:].upper()} cannot hold {bits}-bit values")
-    with atomic_file(path) as tmp:
+    with atomic_file(path) if atomic else nullcontext(path) as tmp:
         if suffix in EXR:
             _write_exr(tmp, arr.astype(np.float32), header or {})
         elif suffix in TIFF:

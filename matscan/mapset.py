@@ -179,10 +179,13 @@ def _find_file(folder: Path, name: str) -> Path | None:
     return found[0] if found else None
 
 
-def drop_alpha(px: np.ndarray, path: Path) -> np.ndarray:
-    """A map file's (H, W, C) pixels as grey (C = 1) or RGB (C = 3): an alpha channel
-    (grey + alpha, RGB + alpha) dropped; any other channel count refused naming the file."""
+def drop_alpha(px: np.ndarray, path: Path, name: str) -> np.ndarray:
+    """A ``name`` map file's (H, W, C) pixels as grey (C = 1) or RGB (C = 3): an alpha
+    channel (grey + alpha, RGB + alpha) dropped; any other channel count, and a normal map
+    that is not RGB, refused naming the file."""
     c = px.shape[2]
+    if name == "normal" and c not in (3, 4):
+        raise input_error(path, f"has {c} channel{'s' if c > 1 else ''}; a normal map needs 3 (RGB, may add alpha)")
     if c in (2, 4):
         return px[:, :, : c - 1]
     if c not in (1, 3):
@@ -193,7 +196,7 @@ def drop_alpha(px: np.ndarray, path: Path) -> np.ndarray:
 def _read_map(path: Path, name: str, meta: dict[str, Any]) -> Tensor:
     spec = SPECS[name]
     img = read_image(path)
-    px = drop_alpha(img.pixels, path)
+    px = drop_alpha(img.pixels, path, name)
     c = px.shape[2]
     if spec.channels == 1:
         if c == 3:
@@ -229,7 +232,10 @@ MAX_HEIGHT_MM = 1e6
 #: Maps whose values are fractions (0 to 1, design.md), and how far past that a float
 #: file's values may stray (an albedo a little over 1, a filter's ringing below 0) before
 #: they are taken for other units (0-255 codes, percent) and refused.
-FRACTION_MAPS = frozenset({"diffuse", "specular", "roughness", "alpha", "metallic", "basecolor"})
+FRACTION_MAPS = frozenset(
+    {"diffuse", "specular", "roughness", "alpha", "metallic", "basecolor"}  # and as PBR libraries name them:
+    | {"glossiness", "metalness", "opacity"}
+)
 FRACTION_SPAN = (-0.5, 1.5)
 #: The largest magnitude a float file's map may hold (other than a height, in mm): far
 #: beyond any meaningful albedo, F0, roughness or emission, short of overflowing a render.
@@ -398,8 +404,8 @@ def _write_one(folder: Path, name: str, t: Tensor, file_format: str, meta: dict[
             "matscanConvention": CONVENTIONS.get(name, ""),
             "matscanFrame": CONVENTIONS["frame"],
         }
-        write_image(tmp, data.permute(1, 2, 0).numpy(), bits=bits, header=header)
+        write_image(tmp, data.permute(1, 2, 0).numpy(), bits=bits, header=header, atomic=False)
     else:
         colourspace = "srgb" if spec.encoding == "srgb" else "linear"
-        write_image(tmp, data.permute(1, 2, 0).numpy(), bits=bits, colourspace=colourspace)
+        write_image(tmp, data.permute(1, 2, 0).numpy(), bits=bits, colourspace=colourspace, atomic=False)
     meta["files"][name] = {"file": file, "bits": bits}

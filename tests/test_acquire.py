@@ -745,6 +745,14 @@ def test_a_resume_with_another_sample_or_sensor_is_refused(tmp_path):
         assert files(tmp_path / "cap") == before
     with pytest.raises(MatscanError, match=r"other settings \(--level\)"):
         acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, replace(SIX, level=0.5))
+    with pytest.raises(MatscanError, match=r"other settings \(--exposure, max_shift_px\)"):  # flags as the CLI has them
+        acquire(
+            tmp_path / "cap",
+            RIG,
+            VirtualCamera(small_sample(), RIG, leds),
+            leds,
+            replace(SIX, exposure_s=0.02, max_shift_px=3.0),
+        )
     acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, SIX)  # the same one resumes
     assert len(load_capture(tmp_path / "cap").files) == 6
 
@@ -767,6 +775,20 @@ def test_a_journal_line_cut_by_a_kill_does_not_swallow_the_next_events(tmp_path)
     assert sorted(e["stem"] for e in events if e["event"] == "frame") == sorted(
         ["dark"] + [f"led_{k:02d}" for k in SIX.lights]
     )
+
+
+def test_a_whole_last_event_without_its_newline_is_kept(tmp_path):
+    """The last event complete but for its newline was replayed, then cut by the next
+    append: its frame came back as "recovered", its checks lost."""
+    leds = VirtualLeds()
+    with pytest.raises(MatscanError, match="disconnected"):
+        acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds, fail_after=4), leds, SIX)
+    journal = tmp_path / "cap" / JOURNAL
+    journal.write_text(journal.read_text().rstrip("\n"))
+    last = json.loads(journal.read_text().splitlines()[-1])
+    acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, SIX)
+    events = [json.loads(line) for line in journal.read_text().splitlines()]
+    assert last in events and not any(e.get("recovered") for e in events)
 
 
 def test_the_exposure_recorded_is_the_one_the_camera_used(tmp_path):
@@ -794,12 +816,28 @@ def test_what_the_board_or_capture_cannot_do_is_refused_before_any_photo(tmp_pat
     wide = dataclasses.replace(RIG, name="dome30", lights=RIG.lights + RIG.lights[:6])
     with pytest.raises(MatscanError, match=r"names light 25, but the LED controller .* drives 24 LEDs"):
         acquire(tmp_path / "b", wide, VirtualCamera(small_sample(), wide, leds), leds, replace(SIX, lights=(0, 25)))
+    camera = VirtualCamera(small_sample(), RIG, leds)
     with pytest.raises(MatscanError, match=r"--level: 0\.0004 is not a level the LED controller makes"):
-        AcquireConfig(level=0.0004)
+        acquire(tmp_path / "c", RIG, camera, leds, replace(SIX, level=0.0004))  # the board would light 0
     with pytest.raises(MatscanError, match=r"--level: 0\.0015 .* nearest 0\.002"):
-        AcquireConfig(level=0.0015)
-    assert AcquireConfig(level=0.25).level == 0.25
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+        acquire(tmp_path / "c", RIG, camera, leds, replace(SIX, level=0.0015))
+    assert camera.shots == 0
+    assert not any((tmp_path / name).exists() for name in "abc")
+
+
+def test_a_capture_begun_at_a_level_between_steps_still_resumes(tmp_path, monkeypatch):
+    """Captures begun before levels were checked against the board's steps resume at
+    their own level (the check refused the only command that could resume them)."""
+    import matscan.capture.acquire as acquire_module
+
+    leds = VirtualLeds()
+    odd = replace(SIX, level=0.3333)
+    monkeypatch.setattr(acquire_module, "check_level", lambda level: None)  # as before the check
+    with pytest.raises(MatscanError, match="disconnected"):
+        acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds, fail_after=3), leds, odd)
+    monkeypatch.undo()
+    acquire(tmp_path / "cap", RIG, VirtualCamera(small_sample(), RIG, leds), leds, odd)
+    assert len(load_capture(tmp_path / "cap").files) == 6
 
 
 def test_an_unreadable_photo_from_a_folder_camera_is_named_and_leaves_nothing(tmp_path):

@@ -123,7 +123,7 @@ def _edit(folder, mutate):
         (lambda d: d.update(format="other/2"), r"format: expected 'matscan-capture/1'"),
         (lambda d: d.update(rig="dome99"), r"capture\.json: rig: 'dome99' is not a built-in rig"),
         (lambda d: d.update(extra=1), r"unknown key 'extra'"),
-        (lambda d: d.update(images=[]), r"images: lists no photos \(matscan capture lists none until its first LED frame"),
+        (lambda d: d.update(images=[]), r"images: lists no photos \(matscan capture lists none until"),
         (lambda d: d.update(acquisition=[]), r"capture\.json: acquisition: expected an object"),
         (
             lambda d: d.update(acquisition={"exposure_s": "fast"}),

@@ -108,6 +108,10 @@ def test_tiff_planar_and_interleaved_read_alike(tmp_path):
 def test_tiff_stack_is_refused_naming_the_file(tmp_path):
     import tifffile
 
+    grey = np.arange(54, dtype=np.uint8).reshape(6, 9, 1)
+    tifffile.imwrite(tmp_path / "one.tif", grey)  # tifffile's own default for (H, W, 1): axes YXQ, one page
+    np.testing.assert_array_equal(read_image(tmp_path / "one.tif").stored, grey)
+
     tifffile.imwrite(tmp_path / "pages.tif", np.zeros((5, 6, 9), np.uint8))  # five grey pages
     with pytest.raises(MatscanError, match=r"pages\.tif: holds a stack of images \(axes QYX"):
         read_image(tmp_path / "pages.tif")

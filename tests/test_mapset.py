@@ -157,6 +157,10 @@ def test_library_float_maps_are_checked_as_matscans(tmp_path):
     write_image(lib / "Rock01_Roughness.exr", np.full((8, 8, 1), 1e9, np.float32), bits=32)
     with pytest.raises(MatscanError, match=r"Rock01_Roughness\.exr: holds values from 1e\+09 to 1e\+09"):
         read_map_folder(lib)
+    write_image(lib / "Rock01_Roughness.exr", np.full((8, 8, 1), 0.5, np.float32), bits=32)
+    write_image(lib / "Rock01_Metalness.exr", np.full((8, 8, 1), 100.0, np.float32), bits=32)  # percent
+    with pytest.raises(MatscanError, match=r"Rock01_Metalness\.exr: .* to 100; a metalness map's lie within 0 to 1"):
+        read_map_folder(lib)
 
 
 def test_write_maps_never_leaves_a_torn_mapset_json(tmp_path, monkeypatch):
@@ -205,6 +209,13 @@ def test_map_channel_counts(tmp_path):
     )
     with pytest.raises(MatscanError, match=r"roughness\.tif: has 5 channels; a map has 1 \(grey\) or 3"):
         read_mapset(tmp_path / "m")
+    (tmp_path / "m" / "roughness.tif").unlink()
+    write_mapset(tmp_path / "n", maps)  # an XY normal map (two channels) is no grey + alpha
+    (tmp_path / "n" / "normal.png").unlink()
+    two = np.zeros((8, 8, 2), np.uint8)
+    tifffile.imwrite(tmp_path / "n" / "normal.tif", two, photometric="minisblack", extrasamples=["unassalpha"])
+    with pytest.raises(MatscanError, match=r"normal\.tif: has 2 channels; a normal map needs 3"):
+        read_mapset(tmp_path / "n")
 
 
 def test_write_maps_that_fails_part_way_leaves_the_folder_as_it_was(tmp_path, monkeypatch):
@@ -229,3 +240,27 @@ def test_write_maps_that_fails_part_way_leaves_the_folder_as_it_was(tmp_path, mo
     mapset.write_maps(folder, random_maps(8, 1))
     assert (folder / "diffuse.png").read_bytes() != before["diffuse.png"]
     torch.testing.assert_close(read_mapset(folder).roughness, random_maps(8, 1).roughness, rtol=0, atol=1e-4)
+
+
+def test_a_full_disk_while_writing_maps_names_the_map(tmp_path, monkeypatch):
+    """The error named the hidden temporary the map was being written to (gone by then)."""
+    import errno
+
+    from matscan.mapset import write_maps
+
+    folder = write_mapset(tmp_path / "set", random_maps(8, 0))
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    real = Path.write_bytes
+
+    def full(self, data):
+        if "roughness.png" in self.name:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    with pytest.raises(MatscanError) as info:
+        write_maps(folder, random_maps(8, 1))
+    assert str(info.value) == f"{folder / 'roughness.png'}: no space left on the device; nothing was written"
+    monkeypatch.undo()
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+

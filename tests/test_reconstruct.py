@@ -557,11 +557,21 @@ def _photographed(maps, gains=None, read_noise: float = 0.0):
 def test_the_rerender_error_renders_emission_and_alpha():
     """The true maps re-render noise-free photos exactly, emission and holes included
     (the error left them out: 0.1 for an emission of 0.1 while the record said 0)."""
-    glow = _plane(emissive=torch.full((3, 32, 32), 0.1))
-    assert rerender_error(glow, _photographed(glow), [2, 6, 10]) < 1e-5
+    # a sample that reflects almost nothing (albedo and F0 0: only Schlick's grazing term,
+    # under 0.001 here) and glows 0.1: every photo is 0.1
+    dark = _plane()
+    dark = MapSet(dark.diffuse * 0, dark.specular * 0, dark.roughness, dark.normal)
+    glow = MapSet(**{**dark.present(), "emissive": torch.full((3, 32, 32), 0.1)})
+    lit = _photographed(glow)
+    torch.testing.assert_close(lit.linear(), torch.full((24, 3, 32, 32), 0.1), rtol=0, atol=1e-3)
+    assert rerender_error(glow, lit, [2, 6, 10]) < 1e-6
+    assert abs(rerender_error(dark, lit, [2, 6, 10]) - 0.1) < 1e-3  # the glow missing: off by 0.1 everywhere
+    # holes (alpha 0) show the black stage, whatever the maps say there
     holes = _plane(alpha=(torch.rand(1, 32, 32, generator=torch.Generator().manual_seed(2)) > 0.3).float())
-    assert rerender_error(holes, _photographed(holes), [2, 6, 10]) < 1e-5
-    assert rerender_error(_plane(), _photographed(glow), [2, 6, 10]) > 0.05  # and it sees the emission missing
+    shot = _photographed(holes)
+    assert float(shot.linear()[:, :, holes.alpha[0] == 0].abs().max()) == 0.0
+    assert rerender_error(holes, shot, [2, 6, 10]) < 1e-5
+    assert rerender_error(_plane(), shot, [2, 6, 10]) > 0.05
 
 
 def test_validation_scores_the_fitted_photos_as_self_calibration_saw_them():

@@ -101,12 +101,7 @@ class AcquireConfig:
             raise MatscanError(f"--target: {self.target!r} is not one of {', '.join(TARGETS)}")
         if not 0 < self.level <= 1:
             raise MatscanError(f"--level: {self.level!r} must be above 0 and at most 1")
-        steps = self.level * LEVEL_STEPS
-        if abs(steps - round(steps)) > 1e-6 * LEVEL_STEPS:  # the board would light another level than recorded
-            raise MatscanError(
-                f"--level: {self.level!r} is not a level the LED controller makes: it sets thousandths "
-                f"(0.001 to 1; nearest {max(1, round(steps)) / LEVEL_STEPS:g})"
-            )
+
         if not 0 <= self.max_saturated < 1:
             raise MatscanError(f"--max-saturated: {self.max_saturated!r} must be a fraction of the pixels, below 1")
         low, high = EXPOSURE_LIMITS
@@ -146,6 +141,18 @@ def plan(rig: Rig, cfg: AcquireConfig) -> list[Frame]:
     return frames
 
 
+def check_level(level: float) -> None:
+    """Refuse an LED level between the controller's steps (thousandths): the board would
+    light another level than the capture records, and ``led_level`` scales a calibration.
+    Checked when a capture starts; one begun before the check resumes at its own level."""
+    steps = level * LEVEL_STEPS
+    if abs(steps - round(steps)) > 1e-6 * LEVEL_STEPS:
+        raise MatscanError(
+            f"--level: {level!r} is not a level the LED controller makes: it sets thousandths "
+            f"(0.001 to 1; nearest {max(1, round(steps)) / LEVEL_STEPS:g})"
+        )
+
+
 def _settings(rig: Rig, cfg: AcquireConfig, camera, leds: str) -> dict[str, Any]:
     """What a resume must find unchanged: the rig, the capture's settings, the LEDs, and the
     camera with what it photographs by (``camera.settings``: a virtual camera's scene and
@@ -154,6 +161,18 @@ def _settings(rig: Rig, cfg: AcquireConfig, camera, leds: str) -> dict[str, Any]
     if getattr(camera, "settings", None) is not None:
         settings["camera_settings"] = camera.settings
     return settings
+
+
+#: ``matscan capture``'s flag for each AcquireConfig field (the others have none).
+FLAGS = {
+    "lights": "--lights",
+    "backlight": "--backlight",
+    "target": "--target",
+    "exposure_s": "--exposure",
+    "max_saturated": "--max-saturated",
+    "retakes": "--retakes",
+    "level": "--level",
+}
 
 
 def _differences(recorded: Any, settings: dict[str, Any]) -> list[str]:
@@ -167,11 +186,7 @@ def _differences(recorded: Any, settings: dict[str, Any]) -> list[str]:
     names = []
     for key in sorted(set(settings) | set(recorded)):
         if key == "config" and isinstance(recorded.get(key), dict):
-            names += [
-                f"--{k.replace('_', '-')}"
-                for k in sorted(settings[key])
-                if settings[key].get(k) != recorded[key].get(k)
-            ]
+            names += [FLAGS.get(k, k) for k in sorted(settings[key]) if settings[key].get(k) != recorded[key].get(k)]
             names += [k for k in recorded[key] if k not in settings[key]]
         elif settings.get(key) != recorded.get(key):
             names.append({"camera_settings": "the camera's settings"}.get(key, key))
@@ -212,8 +227,17 @@ class Journal:
             return
         if not data or data.endswith(b"\n"):
             return
+        cut = data.rfind(b"\n") + 1
+        try:  # a whole event that lacks only its newline was read (and replayed): keep it
+            whole = isinstance(json.loads(data[cut:]), dict)
+        except (ValueError, RecursionError):
+            whole = False
         with open(self.path, "r+b") as f:
-            f.truncate(data.rfind(b"\n") + 1)
+            if whole:
+                f.seek(0, 2)
+                f.write(b"\n")
+            else:
+                f.truncate(cut)
             f.flush()
             os.fsync(f.fileno())
 
@@ -415,8 +439,8 @@ def acquire(
             "fixed rig's LEDs: photograph such a capture yourself and write its capture.json"
         )
     lights = list(cfg.lights) if cfg.lights is not None else list(range(len(rig.lights)))
-    board = getattr(leds, "n_leds", None)
-    if board is not None and lights and max(lights) >= board:
+    board = getattr(leds, "n_leds", None)  # 0 or None: a controller that does not say
+    if board and lights and max(lights) >= board:
         raise MatscanError(
             f"capture: rig {rig.name!r} names light {max(lights)}, but the LED controller {leds.name!r} drives "
             f"{board} LEDs (0 to {board - 1})"
@@ -522,6 +546,7 @@ def _open_folder(out: Path, journal: Journal, settings: dict[str, Any]) -> list[
                 "command and camera, or choose another --out",
             )
         return events
+    check_level(settings["config"]["level"])  # a new capture: at a level the board makes
     out.mkdir(parents=True, exist_ok=True)
     journal.append({"event": "start", "settings": settings})
     return journal.read()

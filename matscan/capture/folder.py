@@ -132,7 +132,8 @@ class Capture:
         folder: where it was read from.
         meta: other recorded fields (``simulation``; ``exposure_s`` and ``led_level`` from
             ``acquisition``, where ``matscan capture`` set them), and ``warnings`` (a list of
-            one-line messages) once calibration has been applied.
+            one-line messages: ``acquisition`` keys matscan does not know, from reading;
+            what applying a calibration found, once it has been applied).
         calibration_file: the calibration file, when the capture names one (its
             flat fields lie beside it).
         lut: (2^bits,) float32 linear radiance of each code value, when ``images``

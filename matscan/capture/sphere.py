@@ -320,8 +320,8 @@ def check_in_photo(centre: tuple[float, float], radius: float, shape: tuple[int,
     past = max(radius - cx, cx + radius - w, radius - cy, cy + radius - h)
     if past > OUTSIDE_REACH * radius:
         raise MatscanError(
-            f"{where}: {sphere} reaches {past:.0f} px past the {w}×{h} photo's edge; give the outline of the "
-            "sphere as it lies in the photo (centre column, row and radius in pixels)"
+            f"{where}: {sphere} reaches {past:.0f} px past the {w}×{h} photo's edge, where the highlights of "
+            "low lights fall: frame the whole sphere, or check --sphere (centre column, row and radius, pixels)"
         )
 
 

@@ -87,29 +87,27 @@ def _image(path: Path, name: str = "diffuse") -> tuple[np.ndarray, str]:
     """A map file's pixels (alpha dropped) and kind; a float file's values checked as a
     ``name`` map's (:func:`matscan.mapset.check_float_map`)."""
     img = read_image(path)
-    px = drop_alpha(img.pixels, path)
+    px = drop_alpha(img.pixels, path, name)
     if img.kind == "float":
         px = check_float_map(torch.from_numpy(np.ascontiguousarray(px)), path, name).numpy()
     return px, img.kind
 
 
-def _colour(path: Path) -> Tensor:
-    px, kind = _image(path)
+def _colour(path: Path, name: str) -> Tensor:
+    px, kind = _image(path, name)
     if px.shape[2] == 1:
         px = np.repeat(px, 3, axis=2)
     t = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).float()
     return t if kind == "float" else srgb_to_linear(t)
 
 
-def _grey(path: Path) -> Tensor:
-    px, _ = _image(path, "roughness")  # a fraction, as roughness, glossiness, metalness and opacity are
+def _grey(path: Path, name: str) -> Tensor:
+    px, _ = _image(path, name)  # a fraction: roughness, glossiness, metalness, opacity
     return torch.from_numpy(np.ascontiguousarray(px.mean(axis=2, keepdims=True))).permute(2, 0, 1).float()
 
 
 def _normal(path: Path, directx: bool) -> Tensor:
     px, _ = _image(path, "normal")
-    if px.shape[2] != 3:
-        raise input_error(path, f"a normal map needs 3 channels, found {px.shape[2]}")
     n = torch.from_numpy(np.ascontiguousarray(px)).permute(2, 0, 1).float() * 2 - 1
     if directx:
         n[1] = -n[1]
@@ -164,18 +162,18 @@ def read_map_folder(folder: str | Path, normal_convention: str = "auto") -> MapS
     directx = normal_convention == "directx" or (
         normal_convention == "auto" and bool(set(tokens(normal_path.stem)) & set(DIRECTX_WORDS))
     )
-    colour = _colour(pick(colour_kind))
+    colour = _colour(pick(colour_kind), colour_kind)
     if "roughness" in found:
-        roughness = _grey(pick("roughness"))
+        roughness = _grey(pick("roughness"), "roughness")
     else:
-        roughness = 1 - _grey(pick("glossiness"))
+        roughness = 1 - _grey(pick("glossiness"), "glossiness")
     normal = _normal(normal_path, directx)
     if "specular" in found and "metalness" not in found:
-        diffuse, specular = colour, _colour(pick("specular"))
+        diffuse, specular = colour, _colour(pick("specular"), "specular")
     else:
-        metallic = _grey(pick("metalness")) if "metalness" in found else torch.zeros_like(roughness)
+        metallic = _grey(pick("metalness"), "metalness") if "metalness" in found else torch.zeros_like(roughness)
         diffuse, specular = metallic_to_specular(colour, metallic)
-    alpha = _grey(pick("opacity")) if "opacity" in found else None
+    alpha = _grey(pick("opacity"), "opacity") if "opacity" in found else None
     maps = {"diffuse": diffuse, "specular": specular, "roughness": roughness, "normal": normal, "alpha": alpha}
     size = diffuse.shape[-2:]
     for name, t in maps.items():
