@@ -94,30 +94,24 @@ def specular_split(maps: MapSet) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
 
     Both mix a dielectric lobe and a metal one by metallic m (glTF 2.0 Appendix B; Standard
     Surface's metalness): F0 = (1 − m)·F0_dielectric + m·baseColor. Texels the plain
-    metal/rough conversion gives back (F0 within ``SPLIT_TOLERANCE``) keep it, so viewers
-    without the extension still see them right; the others, where their F0 can be a
-    dielectric's (at most ``MAX_DIELECTRIC_F0``), become dielectrics (metallic 0, base colour
-    the diffuse, F0 the map's). The dielectric F0 is then (F0 − m·baseColor)/(1 − m)
-    everywhere (0.04 where a texel is all metal, where it has no weight)."""
+    metal/rough conversion gives back (F0 within ``SPLIT_TOLERANCE``) keep it, with the
+    dielectric's usual 0.04 (so the specular colour is white there, and so is Standard
+    Surface's metal edge colour, which is the same input); the others become dielectrics:
+    metallic 0, base colour the diffuse, dielectric F0 the map's."""
     base, metal = _metal_rough(maps)
     _, back = metallic_to_specular(base, metal)
     missed = (back - maps.specular).abs().amax(dim=-3, keepdim=True) > SPLIT_TOLERANCE
-    plain = missed & (maps.specular.amax(dim=-3, keepdim=True) <= MAX_DIELECTRIC_F0)
-    metal = torch.where(plain, torch.zeros_like(metal), metal)
-    base = torch.where(plain, maps.diffuse.clamp(0, 1), base)
-    rest = 1 - metal
-    part = ((maps.specular - metal * base) / rest.clamp_min(1e-3)).clamp(0, MAX_DIELECTRIC_F0)
-    return base, metal, torch.where(rest > 1e-3, part, torch.full_like(part, DIELECTRIC_F0))
+    metal = torch.where(missed, torch.zeros_like(metal), metal)
+    base = torch.where(missed, maps.diffuse.clamp(0, 1), base)
+    dielectric = torch.where(missed, maps.specular.clamp(0, 1), torch.full_like(maps.specular, DIELECTRIC_F0))
+    return base, metal, dielectric
 
 
 #: How far (F0, any channel) the metal/rough conversion may miss a texel's F0 and keep it
 #: in an export with a specular colour.
 SPLIT_TOLERANCE = 0.005
-#: The largest dielectric F0 the exports write (diamond's is 0.17): the split leaves the
-#: dielectric part near 0.04 wherever metallic is above 0, and only near-metal texels,
-#: where the part weighs almost nothing, could push it past this by dividing rounding
-#: errors by 1 − metallic (and with it the glTF texture's factor, coarsening every texel).
-MAX_DIELECTRIC_F0 = 0.25
+#: The largest F0 the MaterialX export's IOR encodes ((1 + √0.98)/(1 − √0.98) ≈ 198).
+MAX_MTLX_F0 = 0.98
 
 
 def specular_residual(maps: MapSet) -> float:
@@ -362,7 +356,9 @@ def usd_files(
     textures, for AR viewers); nothing when usd-core (the ``usd`` extra) is not installed.
 
     UsdPreviewSurface's metallic workflow has no specular tint, so the specular colour
-    that glTF (KHR_materials_specular) and MaterialX carry is not in these files; its
+    that glTF (KHR_materials_specular) and MaterialX carry is not in these files (which
+    read the plain metal/rough conversion, ``tex_usd_*.png`` where that differs from the
+    glTF's split, :func:`specular_split`); its
     roughness is perceptual, as ours. Texture coordinates: USD's st has v up, so the
     image's top row is v = 1.
     """
@@ -410,8 +406,9 @@ def usd_files(
         out = tex.CreateOutput(channels, Sdf.ValueTypeNames.Float3 if channels == "rgb" else Sdf.ValueTypeNames.Float)
         surface.CreateInput(surface_input, kind).ConnectToSource(out)
 
-    connect("diffuseColor", Sdf.ValueTypeNames.Color3f, texture("basecolor", True), "rgb")
-    connect("metallic", Sdf.ValueTypeNames.Float, texture("metallic", False), "r")
+    base, metal = ("usd_basecolor", "usd_metallic") if "usd_metallic" in textures else ("basecolor", "metallic")
+    connect("diffuseColor", Sdf.ValueTypeNames.Color3f, texture(base, True), "rgb")
+    connect("metallic", Sdf.ValueTypeNames.Float, texture(metal, False), "r")
     connect("roughness", Sdf.ValueTypeNames.Float, texture("roughness", False), "r")
     normal = texture("normal", False, scale=(2, 2, 2, 1), bias=(-1, -1, -1, 0))
     connect("normal", Sdf.ValueTypeNames.Normal3f, normal, "rgb")
@@ -432,9 +429,19 @@ def export_all(
 ) -> list[str]:
     """Write the exports into an existing output folder; returns the files written."""
     coloured = specular_residual(maps) > SPECULAR_EXTENSION_THRESHOLD
-    base, metal, dielectric = specular_split(maps) if coloured else (*_metal_rough(maps), None)
+    plain = _metal_rough(maps)
+    base, metal, dielectric = specular_split(maps) if coloured else (*plain, None)
     textures = write_textures(folder, maps, (base, metal))
     written = list(textures.values())
+    if dielectric is not None and not torch.equal(metal, plain[1]):
+        # USD's metallic workflow has no specular colour: it keeps the plain conversion,
+        # the nearest a metal/rough material comes to the maps' F0
+        write_image(
+            folder / "tex_usd_basecolor.png", _hwc(linear_to_srgb(plain[0].clamp(0, 1))), bits=8, colourspace="srgb"
+        )
+        write_image(folder / "tex_usd_metallic.png", _hwc(plain[1].clamp(0, 1)), bits=8, colourspace="linear")
+        textures["usd_basecolor"], textures["usd_metallic"] = "tex_usd_basecolor.png", "tex_usd_metallic.png"
+        written += ["tex_usd_basecolor.png", "tex_usd_metallic.png"]
     if dielectric is not None:
         # glTF (KHR_materials_specular): the dielectric F0 is min(0.04 · colour · factor, 1)
         ratio = (dielectric / DIELECTRIC_F0).clamp(0, 25)
@@ -444,7 +451,7 @@ def export_all(
         textures["specular_color_factor"] = factor  # type: ignore[assignment]
         # MaterialX (standard_surface): F0 = specular_color · ((IOR − 1)/(IOR + 1))², the
         # colour the F0's hue (its largest channel 1) and the IOR its size, texel by texel
-        peak = dielectric.amax(dim=0, keepdim=True).clamp_min(1e-4)
+        peak = dielectric.amax(dim=0, keepdim=True).clamp(1e-4, MAX_MTLX_F0)
         tint = (dielectric / peak).clamp(0, 1)
         write_image(folder / "tex_specular_tint.png", _hwc(linear_to_srgb(tint)), bits=8, colourspace="srgb")
         write_image(folder / "tex_specular_f0.png", _hwc(peak), bits=16, colourspace="linear")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from matscan.brdf import DIELECTRIC_F0, metallic_to_specular
+from matscan.brdf import DIELECTRIC_F0, metallic_to_specular, specular_to_metallic
 from matscan.color import srgb_to_linear
 from matscan.export import export_all, specular_residual
 from matscan.imagefile import read_image
@@ -253,12 +253,18 @@ def _metal_rough_read(folder) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _mixed_maps(size: int = 8) -> MapSet:
-    """Texels of three kinds: a dielectric of F0 0.01 (below the 0.04 metal/rough gives
+    """Texels of several kinds: a dielectric of F0 0.01 (below the 0.04 metal/rough gives
     dielectrics, so an export needs a specular colour), F0 0.2 over diffuse 0.3 (which
-    metal/rough gives exactly, as metallic 0.37), and a gold metal."""
+    metal/rough gives exactly, as metallic 0.37), a gold metal, a grey iron with a little
+    diffuse, coloured F0s either side of 0.25 over a coloured diffuse, and a grey F0 0.3
+    over a coloured diffuse (which metal/rough cannot give)."""
     diffuse, specular = torch.full((3, size, size), 0.5), torch.full((3, size, size), 0.01)
     diffuse[:, size // 2 :], specular[:, size // 2 :] = 0.3, 0.2
     diffuse[:, 0, 0], specular[:, 0, 0] = 0.0, torch.tensor([0.9, 0.7, 0.3])
+    diffuse[:, 0, 1], specular[:, 0, 1] = 0.05, torch.tensor([0.56, 0.57, 0.58])
+    for col, blue in ((2, 0.249), (3, 0.251)):
+        diffuse[:, 0, col], specular[:, 0, col] = torch.tensor([0.46, 0.017, 0.21]), torch.tensor([0.238, 0.223, blue])
+    diffuse[:, 1, 0], specular[:, 1, 0] = torch.tensor([0.6, 0.3, 0.2]), 0.3
     normal = torch.zeros(3, size, size)
     normal[2] = 1
     return MapSet(diffuse, specular, torch.full((1, size, size), 0.3), normal)
@@ -280,6 +286,9 @@ def test_materialx_carries_the_specular_map(tmp_path):
     assert float(tint.max()) <= 1.0 and float(ior.min()) >= 1.0
     base, metal = _metal_rough_read(tmp_path)
     assert bool(((metal > 0.05) & (metal < 0.95)).any())  # the case that went wrong: metal and dielectric mixed
+    # specular_color is also the metals' edge colour (metal_edgecolor = specular_color ·
+    # specular): white wherever there is metal, not the conversion's leftovers
+    assert float((tint - 1).abs()[:, metal[0] > 0].max()) < 2 / 255
     f0 = (1 - metal) * tint * ((ior - 1) / (ior + 1)) ** 2 + metal * base
     assert float((f0 - maps.specular).abs().max()) < 0.006  # 8-bit textures (the gold: 0.9 at 1/255)
     assert float(((1 - metal) * base - maps.diffuse).abs().max()) < 0.006
@@ -308,6 +317,33 @@ def test_gltf_specular_extension_gives_the_maps_f0_on_mixed_texels(tmp_path):
     f0 = (1 - metal) * dielectric + metal * base
     assert float((f0 - maps.specular).abs().max()) < 0.006
     assert float(((1 - metal) * base - maps.diffuse).abs().max()) < 0.006
+
+
+def test_usd_keeps_the_metal_rough_conversion_where_gltf_splits_otherwise(tmp_path):
+    """UsdPreviewSurface's metallic workflow has no specular colour: its textures stay the
+    plain conversion (metallic 0.14 for F0 (0.2, 0.1, 0.05) over diffuse 0.5), not the
+    glTF's split (metallic 0 there, an F0 of 0.04), which doubled its F0 error."""
+    pytest.importorskip("pxr", reason="usd-core (the usd extra) is not installed")
+    from pxr import Usd, UsdShade
+
+    maps = _mixed_maps()
+    maps.diffuse[:, 1, 1], maps.specular[:, 1, 1] = 0.5, torch.tensor([0.2, 0.1, 0.05])
+    export_all(tmp_path, maps, (10.0, 10.0))
+    stage = Usd.Stage.Open(str(tmp_path / "material.usda"))
+    material, _ = UsdShade.MaterialBindingAPI(stage.GetPrimAtPath("/Root/Sample")).ComputeBoundMaterial()
+    surface = material.ComputeSurfaceSource()[0]
+
+    def read(name):
+        source = surface.GetInput(name).GetConnectedSources()[0][0].source
+        file = UsdShade.Shader(source.GetPrim()).GetInput("file").Get().path
+        return _linear(tmp_path / file)[:3] if name == "diffuseColor" else _raw(tmp_path / file)
+
+    base, metal = read("diffuseColor"), read("metallic")
+    usd = 0.04 * (1 - metal) + metal * base  # UsdPreviewSurface's metallic workflow
+    plain_base, plain_metal = specular_to_metallic(maps.diffuse, maps.specular)
+    torch.testing.assert_close(metal, plain_metal, rtol=0, atol=1 / 255)
+    assert float(metal[0, 1, 1]) > 0.1
+    assert float((usd - maps.specular).abs().mean()) <= float(((0.04 - maps.specular).abs()).mean())
 
 
 def test_usd_stage_binds_a_preview_surface_reading_the_textures(tmp_path):
