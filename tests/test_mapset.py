@@ -263,4 +263,3 @@ def test_a_full_disk_while_writing_maps_names_the_map(tmp_path, monkeypatch):
     assert str(info.value) == f"{folder / 'roughness.png'}: no space left on the device; nothing was written"
     monkeypatch.undo()
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
-
