@@ -312,18 +312,30 @@ def check_scales(scales: Mapping[str, float], source: str = "calibration") -> li
     ]
 
 
-def _grey_scale(photo: Tensor, model: Tensor, saturated: Tensor, k: int) -> float:
-    """The scale of light ``k`` from its grey-card photo and rendering (each (c, H, W))."""
+def significant(value: float, digits: int = 7) -> float:
+    """``value`` to ``digits`` significant digits (a scale of 2e-6 keeps its own digits,
+    where 6 decimals made 1.93e-6 and 2.10e-6 the same 2e-6)."""
+    return float(f"{float(value):.{digits}g}")
+
+
+def _grey_scale(photo: Tensor, model: Tensor, saturated: Tensor, k: int, where: str = "calibrate") -> float:
+    """The scale of light ``k`` from its grey-card photo (``where``: its file) and
+    rendering (each (c, H, W))."""
     lit = model > 1e-4
     if not bool(lit.any()):
-        raise MatscanError(f"calibrate: light {k} does not light the grey card (check the rig file)")
+        raise MatscanError(f"{where}: light {k} does not light the grey card (check the rig file)")
     ok = (~saturated).expand_as(model) & lit
     if not bool(ok.any()):
-        raise MatscanError(f"calibrate: every pixel saturated under light {k}; lower the exposure")
+        raise MatscanError(f"{where}: every pixel saturated under light {k}; lower the exposure")
     s = weighted_median(photo[ok] / model[ok], model[ok])
     if not s > 0:
-        raise MatscanError(f"calibrate: the grey card is black under light {k}; check that the light fired")
+        raise MatscanError(f"{where}: the grey card is black under light {k}; check that the light fired")
     return s
+
+
+def _photo_name(capture: Capture, i: int) -> str:
+    """How messages name a capture's photo ``i``: its file, where the capture has a folder."""
+    return str(capture.folder / capture.files[i]) if capture.folder is not None else f"calibrate: photo {i}"
 
 
 def light_scales(
@@ -361,12 +373,13 @@ def light_scales(
                 pts,
             )[0]
         photo = grey.linear([i])[0]
+        where = _photo_name(grey, i)
         if colour:
-            rgb = tuple(_grey_scale(photo[c : c + 1], model[c : c + 1], grey.saturated[i], k) for c in range(3))
+            rgb = tuple(_grey_scale(photo[c : c + 1], model[c : c + 1], grey.saturated[i], k, where) for c in range(3))
             scales[str(k)] = rgb
             s = torch.tensor(rgb).view(3, 1, 1)
         else:
-            s = scales[str(k)] = _grey_scale(photo, model, grey.saturated[i], k)
+            s = scales[str(k)] = _grey_scale(photo, model, grey.saturated[i], k, where)
         if flat_fields:
             ratio = smooth((photo / (s * model).clamp_min(1e-4)).mean(0), flat_sigma_px)
             mean = float(ratio.mean().clamp_min(1e-12))
@@ -501,7 +514,7 @@ def fit_light_positions(grey: Capture, grid: int = POSITION_GRID, iterations: in
         sat = F.adaptive_max_pool2d(grey.saturated[i][None].float(), (gh, gw)).reshape(-1) > 0
         ok = ~sat & (block > POSITION_DARK * float(block.max()))
         if int(ok.sum()) < 16:
-            raise MatscanError(f"calibrate: light {k} lights too little of the grey card to place it")
+            raise MatscanError(f"{_photo_name(grey, i)}: light {k} lights too little of the grey card to place it")
         chosen.append((i, k))
         photos.append(block.clamp_min(1e-12).log())
         masks.append(ok)
@@ -647,14 +660,15 @@ def write_calibration(
         doc["colour_matrix"] = [[round(float(v), 6) for v in row] for row in matrix]
     if scales:
         doc["light_scales"] = {
-            k: round(float(v), 6) if isinstance(v, (int, float)) else [round(float(c), 6) for c in v]
-            for k, v in scales.items()
+            k: significant(v) if isinstance(v, (int, float)) else [significant(c) for c in v] for k, v in scales.items()
         }
     if positions:
         doc["light_positions_mm"] = {k: [round(float(v), 3) for v in p] for k, p in positions.items()}
     if scales and exposure and "exposure_s" in exposure:
         doc["exposure_s"] = float(exposure["exposure_s"])
         doc["led_level"] = float(exposure.get("led_level", 1.0))
+    elif scales and exposure and "led_level" in exposure:  # a camera that set its own exposure
+        doc["led_level"] = float(exposure["led_level"])
     if flats:
         doc["flat_fields"] = {}
         for k, t in flats.items():
@@ -791,8 +805,7 @@ def _calibrate(
     exposure: dict[str, float] = {}
     if grey is not None:
         card = load_capture(grey)
-        if "exposure_s" in card.meta:
-            exposure = {k: card.meta[k] for k in ("exposure_s", "led_level") if k in card.meta}
+        exposure = {k: card.meta[k] for k in ("exposure_s", "led_level") if k in card.meta}
         if matrix is not None:  # the scales divide photos already colour-corrected (apply_calibration)
             n = len(card.files)
             card = replace(card, correction=Correction(matrix, torch.ones(n, 3), (None,) * n))
@@ -801,6 +814,13 @@ def _calibrate(
             card = with_light_positions(card, {int(k): p for k, p in fit.positions.items()})
             warnings += check_light_fit(fit, str(out))
         scales, flats = light_scales(card, flat_fields=flat_fields, colour=True)
+        for k, rgb in scales.items():  # what apply_calibration refuses to read, refused here
+            if not all(SCALE_LIMITS[0] <= c <= SCALE_LIMITS[1] for c in rgb):
+                raise input_error(
+                    card.folder or grey,
+                    f"light {k}'s scale {max(rgb):.4g} is outside {SCALE_LIMITS[0]:g} to {SCALE_LIMITS[1]:g}: "
+                    "the grey card's photos are not in the rig's units (their encoding, or an exposure far off?)",
+                )
         warnings += check_scales({k: sum(v) / 3 for k, v in scales.items()}, str(out))
     write_calibration(out, matrix, scales, flats, fit.positions if fit is not None else None, exposure)
     return Calibration(
@@ -923,7 +943,7 @@ def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[s
     logs = {k: torch.tensor(v, dtype=torch.float64).log() for k, v in scales.items()}
     pts = {k: torch.tensor(v, dtype=torch.float64) for k, v in positions.items()}
     if logs:
-        merged["light_scales"] = order({k: [round(float(c), 6) for c in t.mean(0).exp()] for k, t in logs.items()})
+        merged["light_scales"] = order({k: [significant(c) for c in t.mean(0).exp()] for k, t in logs.items()})
     if pts:
         kept = [places for (_, places), name in zip(per_file, names, strict=True) if name not in left and places]
         means = {k: t.mean(0) for k, t in pts.items()}
@@ -1062,9 +1082,9 @@ _CALIBRATION_KEYS = {
 def _exposure(doc: Mapping[str, Any], prefix: str) -> tuple[float, float] | None:
     """A calibration's ``exposure_s`` and ``led_level`` (1 where absent), checked; None
     where it records no exposure."""
-    if "led_level" in doc and "exposure_s" not in doc:
-        raise MatscanError(f"{prefix}led_level: given without exposure_s")
-    if "exposure_s" not in doc:
+    if "exposure_s" not in doc:  # a level alone: a card whose camera set its own exposure
+        if "led_level" in doc:
+            check_number(doc["led_level"], f"{prefix}led_level", 0.0, 1.0, positive=True)
         return None
     seconds = check_number(doc["exposure_s"], f"{prefix}exposure_s", *EXPOSURE_LIMITS, positive=True)
     level = check_number(doc.get("led_level", 1.0), f"{prefix}led_level", 0.0, 1.0, positive=True)
@@ -1085,6 +1105,13 @@ def exposure_ratio(capture: Capture) -> tuple[float, list[str]]:
         return 1.0, []
     seconds = capture.meta.get("exposure_s")
     if recorded is None and seconds is None:
+        card, here = cal.get("led_level"), capture.meta.get("led_level")
+        if card is not None and here is not None and abs(card - here) > 1e-9:
+            return 1.0, [
+                f"{name}'s grey card was lit at LED level {card:g} and the capture at {here:g}, and neither "
+                "records its exposure (the camera set it): the photos are taken as made at the card's; "
+                "calibrate at the capture's level"
+            ]
         return 1.0, []
     if recorded is None:
         return 1.0, [

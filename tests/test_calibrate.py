@@ -24,7 +24,7 @@ from matscan.capture import load_capture, write_capture
 from matscan.capture.virtual import CameraModel, simulate_images
 from matscan.cli import main
 from matscan.errors import MatscanError
-from matscan.imagefile import write_image
+from matscan.imagefile import read_image, write_image
 from matscan.mapset import MapSet
 from matscan.rig import LightSet, builtin_rig
 
@@ -121,6 +121,9 @@ def test_light_scales_are_recovered_and_applied(tmp_path):
         ({"exposure_s": 0.02}, {"exposure_s": None, "led_level": 1.0}, 1.0, "measured at 0.02 s (LED level 1)"),
         ({}, {"exposure_s": 0.005}, 1.0, "does not record its grey card's exposure"),
         ({}, None, 1.0, None),
+        # neither records an exposure (a camera that set its own): another level is said, not applied
+        ({"led_level": 1.0}, {"exposure_s": None, "led_level": 0.5}, 1.0, "lit at LED level 1 and the capture at 0.5"),
+        ({"led_level": 0.5}, {"exposure_s": None, "led_level": 0.5}, 1.0, None),
     ],
 )
 def test_scales_follow_the_exposure_and_level_the_capture_records(tmp_path, calibration, acquisition, ratio, warned):
@@ -166,7 +169,8 @@ def test_calibrate_function_writes_and_returns_the_calibration(tmp_path):
         assert [abs(c / s - 1) < 0.005 for c in cal.light_scales[str(k)]] == [True] * 3
     assert sorted(cal.flat_fields) == ["0", "12", "23"]
     doc = json.loads(out.read_text())
-    assert doc["light_scales"] == {k: [round(c, 6) for c in v] for k, v in cal.light_scales.items()}
+    for k, v in cal.light_scales.items():  # written to 7 significant digits
+        assert doc["light_scales"][k] == pytest.approx(list(v), rel=1e-6)
     assert sorted(p.name for p in out.parent.glob("flat_*.exr")) == ["flat_00.exr", "flat_12.exr", "flat_23.exr"]
     with pytest.raises(MatscanError, match="exists"):  # an existing calibration needs overwrite=True
         calibrate(out, chart=tmp_path / "chart.exr", chart_encoding="linear")
@@ -527,7 +531,7 @@ def test_merged_scales_are_brought_to_the_first_files_exposure():
         ({"exposure_s": 0.01}, "a.json: records no exposure where b.json does"),
         ({"exposure_s": 0.0}, "b.json: exposure_s: must be positive"),
         ({"exposure_s": 0.01, "led_level": 1.5}, "b.json: led_level: 1.5 is out of range"),
-        ({"led_level": 0.5}, "b.json: led_level: given without exposure_s"),
+        ({"led_level": 1.5}, "b.json: led_level: 1.5 is out of range"),  # a level alone may be recorded
         ({"colour_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}, "b.json: colour_matrix differs from a.json's"),
         ({"format": "matscan-calibration/2"}, "b.json: format: must be 'matscan-calibration/1'"),
         ({"light_scales": {"0": -1.0}}, "b.json: light_scales['0']"),
@@ -585,3 +589,36 @@ def test_a_merge_written_elsewhere_names_the_flat_fields_where_they_are(tmp_path
     beside = lab / "dome.json"
     assert main(["calibrate", "--merge", *map(str, files), "--out", str(beside)]) == 0
     assert json.loads(beside.read_text())["flat_fields"] == {"3": "flat_03.exr"}  # as given, beside them
+
+
+def test_scales_keep_their_significant_digits(tmp_path):
+    """Scales were written to 6 decimals: 1.93e-6 and 2.10e-6 both became 2e-6, and one
+    under 5e-7 became 0, which the reader refuses."""
+    from matscan.calibrate import write_calibration
+
+    out = tmp_path / "calibration.json"
+    write_calibration(out, None, {"0": [1.93e-6, 2.1e-6, 4e-7], "5": 123456.789})
+    scales = json.loads(out.read_text())["light_scales"]
+    assert scales["0"] == pytest.approx([1.93e-6, 2.1e-6, 4e-7], rel=1e-6)
+    assert scales["5"] == pytest.approx(123456.789, rel=1e-6)
+
+
+def test_a_grey_card_in_other_units_is_refused_when_calibrating(tmp_path, capsys):
+    """Photos 2e6 times the rig's units gave scales of 2e6: written, then refused by every
+    reconstruction that read them. The card's errors name its photo too."""
+    _grey_capture(tmp_path, [1.0, 1.0], [0, 5])
+    doc = json.loads((tmp_path / "grey" / "capture.json").read_text())
+    for entry in doc["images"]:
+        path = tmp_path / "grey" / entry["file"]
+        write_image(path.with_suffix(".exr"), read_image(path).pixels * 2e6, bits=32)
+        entry["file"] = path.with_suffix(".exr").name
+    (tmp_path / "grey" / "capture.json").write_text(json.dumps(doc))
+    assert main(["calibrate", "--grey", str(tmp_path / "grey"), "--out", str(tmp_path / "cal.json")]) == 2
+    err = capsys.readouterr().err
+    assert re.search(r"light 0's scale 2(\.\d+)?e\+06 is outside 1e-06 to 1e\+06", err)
+    assert str(tmp_path / "grey") in err
+    assert not (tmp_path / "cal.json").exists()
+    black = doc["images"][1]["file"]
+    write_image(tmp_path / "grey" / black, np.zeros((32, 32, 3), np.float32), bits=32)
+    assert main(["calibrate", "--grey", str(tmp_path / "grey"), "--out", str(tmp_path / "cal.json")]) == 2
+    assert f"{tmp_path / 'grey' / black}: the grey card is black under light 5" in capsys.readouterr().err
