@@ -815,10 +815,11 @@ def _calibrate(
             warnings += check_light_fit(fit, str(out))
         scales, flats = light_scales(card, flat_fields=flat_fields, colour=True)
         for k, rgb in scales.items():  # what apply_calibration refuses to read, refused here
-            if not all(SCALE_LIMITS[0] <= c <= SCALE_LIMITS[1] for c in rgb):
+            wrong = [c for c in rgb if not SCALE_LIMITS[0] <= c <= SCALE_LIMITS[1]]
+            if wrong:
                 raise input_error(
                     card.folder or grey,
-                    f"light {k}'s scale {max(rgb):.4g} is outside {SCALE_LIMITS[0]:g} to {SCALE_LIMITS[1]:g}: "
+                    f"light {k}'s scale {wrong[0]:.4g} is outside {SCALE_LIMITS[0]:g} to {SCALE_LIMITS[1]:g}: "
                     "the grey card's photos are not in the rig's units (their encoding, or an exposure far off?)",
                 )
         warnings += check_scales({k: sum(v) / 3 for k, v in scales.items()}, str(out))
@@ -882,6 +883,7 @@ def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[s
     per_file: list[tuple[dict[str, tuple[float, ...]], dict[str, tuple[float, ...]]]] = []  # scales, places
     base: dict[str, Any] | None = None
     reference: tuple[float, float] | None = None
+    first_level = None
     for doc, name in zip(documents, names, strict=True):
         file_scales: dict[str, tuple[float, ...]] = {}
         file_places: dict[str, tuple[float, ...]] = {}
@@ -890,15 +892,25 @@ def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[s
         if doc["format"] != CALIBRATION_FORMAT:
             raise MatscanError(f"{name}: format: must be {CALIBRATION_FORMAT!r}, got {short_repr(doc['format'])}")
         exposure = _exposure(doc, f"{name}: ")
+        level = doc.get("led_level") if exposure is None else None  # a level alone (the camera set the exposure)
         own = ("light_scales", "light_positions_mm", "exposure_s", "led_level")
         rest = {k: v for k, v in doc.items() if k not in own}
         if base is None:
-            base, first, reference = rest, name, exposure
+            base, first, reference, first_level = rest, name, exposure, level
         elif (exposure is None) != (reference is None):
             which, other = (name, first) if exposure is None else (first, name)
             raise MatscanError(
                 f"{which}: records no exposure where {other} does, so their scales cannot be brought "
                 "to one exposure; merge calibrations that all record it"
+            )
+        elif exposure is None and level != first_level:
+
+            def said(value: Any) -> str:
+                return "no LED level" if value is None else f"LED level {value:g}"
+
+            raise MatscanError(
+                f"{name}: records {said(level)} where {first} records {said(first_level)}, and neither an "
+                "exposure, so their scales cannot be brought to one level; merge calibrations made at one level"
             )
         elif rest != base:
             key = next(k for k in sorted(set(rest) | set(base)) if rest.get(k) != base.get(k))
@@ -936,6 +948,8 @@ def merge_calibrations(documents: Sequence[Mapping[str, Any]], names: Sequence[s
     merged = dict(base or {})
     if reference is not None:
         merged["exposure_s"], merged["led_level"] = reference
+    elif first_level is not None:
+        merged["led_level"] = first_level
 
     def order(d: dict[str, Any]) -> dict[str, Any]:
         return dict(sorted(d.items(), key=lambda kv: int(kv[0])))
@@ -1113,6 +1127,12 @@ def exposure_ratio(capture: Capture) -> tuple[float, list[str]]:
                 "calibrate at the capture's level"
             ]
         return 1.0, []
+    if recorded is None and "led_level" in cal:  # the card's camera set its own exposure
+        return 1.0, [
+            f"{name}'s grey card was taken at an exposure its camera set (LED level {cal['led_level']:g}), so the "
+            f"photos (at {seconds:.4g} s, LED level {capture.meta.get('led_level', 1.0):g}) are taken as made at "
+            "it; calibrate with a card taken by the capture's camera to have the ratio applied"
+        ]
     if recorded is None:
         return 1.0, [
             f"{name} does not record its grey card's exposure, so the photos (at {seconds:.4g} s) are "
@@ -1377,7 +1397,7 @@ def with_light_gains(capture: Capture, gains: Tensor) -> dict[str, Any]:
     before = capture.correction.gain if capture.correction is not None else torch.ones(n, 3)
     ratio = capture.meta.get("exposure_ratio", 1.0)
     scales = {
-        str(k): [round(float(c) * ratio, 6) for c in (s if isinstance(s, (list, tuple)) else (s,) * 3)]
+        str(k): [significant(float(c) * ratio) for c in (s if isinstance(s, (list, tuple)) else (s,) * 3)]
         if ratio != 1.0
         else s
         for k, s in cal.get("light_scales", {}).items()
@@ -1385,9 +1405,12 @@ def with_light_gains(capture: Capture, gains: Tensor) -> dict[str, Any]:
     if "exposure_s" in capture.meta:
         cal["exposure_s"] = capture.meta["exposure_s"]
         cal["led_level"] = capture.meta.get("led_level", 1.0)
+    elif "led_level" in capture.meta:  # a camera that set its own exposure: the capture's level alone
+        cal.pop("exposure_s", None)
+        cal["led_level"] = capture.meta["led_level"]
     for k, b, g in zip(capture.light_indices, before, gains, strict=True):
         if k is not None:
-            scales[str(k)] = [round(float(v), 6) for v in b * g]
+            scales[str(k)] = [significant(float(v)) for v in b * g]
     cal["light_scales"] = dict(sorted(scales.items(), key=lambda kv: int(kv[0])))
     if "flat_fields" in cal:
         _, prefix, _ = _where(capture)

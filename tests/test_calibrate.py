@@ -124,6 +124,7 @@ def test_light_scales_are_recovered_and_applied(tmp_path):
         # neither records an exposure (a camera that set its own): another level is said, not applied
         ({"led_level": 1.0}, {"exposure_s": None, "led_level": 0.5}, 1.0, "lit at LED level 1 and the capture at 0.5"),
         ({"led_level": 0.5}, {"exposure_s": None, "led_level": 0.5}, 1.0, None),
+        ({"led_level": 1.0}, {"exposure_s": 0.01, "led_level": 0.5}, 1.0, "taken at an exposure its camera set"),
     ],
 )
 def test_scales_follow_the_exposure_and_level_the_capture_records(tmp_path, calibration, acquisition, ratio, warned):
@@ -615,10 +616,45 @@ def test_a_grey_card_in_other_units_is_refused_when_calibrating(tmp_path, capsys
     (tmp_path / "grey" / "capture.json").write_text(json.dumps(doc))
     assert main(["calibrate", "--grey", str(tmp_path / "grey"), "--out", str(tmp_path / "cal.json")]) == 2
     err = capsys.readouterr().err
-    assert re.search(r"light 0's scale 2(\.\d+)?e\+06 is outside 1e-06 to 1e\+06", err)
+    assert re.search(r"light 0's scale [12](\.\d+)?e\+06 is outside 1e-06 to 1e\+06", err)
     assert str(tmp_path / "grey") in err
     assert not (tmp_path / "cal.json").exists()
     black = doc["images"][1]["file"]
     write_image(tmp_path / "grey" / black, np.zeros((32, 32, 3), np.float32), bits=32)
     assert main(["calibrate", "--grey", str(tmp_path / "grey"), "--out", str(tmp_path / "cal.json")]) == 2
     assert f"{tmp_path / 'grey' / black}: the grey card is black under light 5" in capsys.readouterr().err
+
+
+def test_calibrations_that_record_a_level_alone_merge_at_one_level(tmp_path):
+    """Files whose card's camera set the exposure record the LED level alone: merged only
+    at one level, which the merge keeps (it merged 1.0 with 0.5 silently, and dropped it)."""
+    from matscan.calibrate import merge_calibrations
+
+    a = {"format": "matscan-calibration/1", "light_scales": {"0": [1.0, 1.0, 1.0]}, "led_level": 1.0}
+    with pytest.raises(MatscanError, match=r"b\.json: records LED level 0\.5 where a\.json records LED level 1"):
+        merge_calibrations([a, {**a, "led_level": 0.5}], ["a.json", "b.json"])
+    with pytest.raises(MatscanError, match=r"b\.json: records no LED level where a\.json records LED level 1"):
+        merge_calibrations([a, {k: v for k, v in a.items() if k != "led_level"}], ["a.json", "b.json"])
+    merged = merge_calibrations([a, {**a, "light_scales": {"0": [4.0, 4.0, 4.0]}}], ["a.json", "b.json"]).document
+    assert merged["led_level"] == 1.0 and merged["light_scales"]["0"] == pytest.approx([2.0, 2.0, 2.0])
+
+
+def test_a_self_calibration_records_the_captures_level_and_significant_scales(tmp_path):
+    """with_light_gains (self_calibration.json): for a capture whose camera set its exposure
+    it kept the card's level, not the capture's, at which its scales now hold; and it
+    rounded scales to 6 decimals (1.93e-6 became 2e-6, a small one 0)."""
+    from matscan.calibrate import with_light_gains
+
+    _grey_capture(tmp_path, [1.0, 1.0], [0, 5])
+    doc = json.loads((tmp_path / "grey" / "capture.json").read_text())
+    doc["acquisition"] = {"exposure_s": None, "led_level": 0.5}
+    doc["calibration"] = {
+        "format": "matscan-calibration/1",
+        "light_scales": {"0": [1.93e-6, 2.1e-6, 1.4e-6], "5": 1.0},
+        "led_level": 1.0,
+    }
+    (tmp_path / "grey" / "capture.json").write_text(json.dumps(doc))
+    capture = apply_calibration(load_capture(tmp_path / "grey"))
+    made = with_light_gains(capture, torch.tensor([[1.0, 1.0, 0.3], [1.0, 1.0, 1.0]]))
+    assert made["led_level"] == 0.5 and "exposure_s" not in made
+    assert made["light_scales"]["0"] == pytest.approx([1.93e-6, 2.1e-6, 0.42e-6], rel=1e-5)
