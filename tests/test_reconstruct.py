@@ -136,6 +136,22 @@ def test_height_of_a_known_surface():
     torch.testing.assert_close(est[:, 0], (torch.sin(2 * math.pi * i / n) * 0.5)[:, 0] - 0, atol=0.02, rtol=0)
 
 
+def test_height_of_a_tilted_plane_is_that_plane():
+    """A plane rising 0.1 mm per mm toward +x (normal (−0.1, 0, 1), unnormalised) is
+    h = 0.1·x; toward +y (up the image) on a field of 1 × 2 mm pixels, 0.1·y. The periodic
+    integral used before returned 0 everywhere for both."""
+    from matscan.reconstruct import height_from_normals
+
+    rows, cols = 40, 64
+    for slope, mm, along in (((-0.1, 0.0), (1.875, 1.875), "x"), ((0.0, -0.1), (1.0, 2.0), "y")):
+        normal = torch.tensor([slope[0], slope[1], 1.0]).view(3, 1, 1).expand(3, rows, cols)
+        normal = normal / normal.norm(dim=0, keepdim=True)
+        x = (torch.arange(cols) - (cols - 1) / 2) * mm[0]
+        y = -(torch.arange(rows) - (rows - 1) / 2) * mm[1]  # rows run down, y up
+        truth = (0.1 * x).expand(rows, cols) if along == "x" else (0.1 * y[:, None]).expand(rows, cols)
+        torch.testing.assert_close(height_from_normals(normal, mm)[0], truth, atol=1e-4, rtol=0)
+
+
 def test_uncalibrated_flash_capture_gets_an_intensity_scale(tmp_path):
     # a dielectric photographed with an unknown flash power: the highlights fix the scale, up to
     # how far the material's F0 is from the assumed 0.04 (dielectrics span about 0.03–0.05)
@@ -586,3 +602,16 @@ def test_validation_scores_the_fitted_photos_as_self_calibration_saw_them():
     rec = leave_out_validation(cap, 6, cfg, None)
     assert rec["rmse_fitted"] < 0.01  # the read noise is 0.002; the gains' error ~0.035
     assert rec["rmse_fitted"] < rec["rmse_left_out"]  # the left-out photos' gains are unknown
+
+
+def test_emissive_on_one_photo_fits_none_and_says_so(tmp_path, capsys):
+    """One photo is not refined (its rule, docs/results.md), and the emissive map is
+    fitted by refinement: --emissive there stopped with an error about --refine off, which
+    the user never gave. Now the maps are written, without an emissive map, and a warning
+    says why."""
+    _capture(tmp_path, size=24, lights=[0], name="one")
+    code = main(["reconstruct", str(tmp_path / "one"), "--out", str(tmp_path / "o"), "--emissive"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "--emissive needs refinement, which one photo" in err and "no emissive map was fitted" in err
+    assert read_mapset(tmp_path / "o").emissive is None

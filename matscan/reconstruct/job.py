@@ -542,7 +542,14 @@ def reconstruct_capture(
             chosen, choice = ONE_PHOTO, {"chosen": ONE_PHOTO, "rule": "one photo (docs/results.md)"}
         seconds = time.perf_counter() - t0
         use_nets, refine = ALL_CANDIDATES[chosen]
-        result = reconstruct_capture(capture, replace(cfg, refine=refine), nets if use_nets else None, progress)
+        # the emissive map is fitted by refinement; a choice not to refine fits none (said below)
+        emissive = cfg.emissive and refine != "off"
+        sub = replace(cfg, refine=refine, emissive=emissive)
+        result = reconstruct_capture(capture, sub, nets if use_nets else None, progress)
+        if cfg.emissive and not emissive:
+            result.warnings.append(
+                f"--emissive needs refinement, which {choice['rule']} leaves out: no emissive map was fitted"
+            )
         result.choice = choice
         result.timings["choice_s"] = seconds
         return result

@@ -404,32 +404,16 @@ def base_slope(maps: MapSet, share: float | None = None) -> Tensor:
 def integrated_height(slope: Tensor) -> Tensor:
     """The height (H, W) in pixels, zero mean, whose differences between neighbouring
     pixels best fit, in least squares, the slopes (2, H, W) = (n_x / n_z, n_y / n_z)
-    averaged over each pair (x right, y up: ∂h/∂x = −n_x / n_z). Unlike
-    :func:`matscan.reconstruct.surface.height_from_normals` it keeps the slopes' mean (a
-    tilted plane comes back a plane) and the field is not taken as periodic: the normal
-    equations are the grid's Laplacian with the field's edges free (Neumann), solved
-    exactly in the cosine basis, here by the Fourier transform of the field mirrored at its
-    edges."""
+    averaged over each pair (x right, y up: ∂h/∂x = −n_x / n_z), with the field's edges
+    free (:func:`matscan.reconstruct.surface.integrate_differences`): a tilted plane comes
+    back a plane."""
+    from matscan.reconstruct.surface import integrate_differences
+
     dtype = slope.dtype
     slope = slope.double()
     along_x = -(slope[0][:, 1:] + slope[0][:, :-1]) / 2  # h[i, j + 1] − h[i, j]
     along_rows = (slope[1][1:] + slope[1][:-1]) / 2  # h[i + 1, j] − h[i, j] (rows run down)
-    rows, cols = slope.shape[1:]
-    rhs = torch.zeros(rows, cols, dtype=torch.float64)  # the differences' transpose applied
-    rhs[:, 1:] += along_x
-    rhs[:, :-1] -= along_x
-    rhs[1:] += along_rows
-    rhs[:-1] -= along_rows
-    mirrored = torch.cat([rhs, rhs.flip(0)], 0)
-    mirrored = torch.cat([mirrored, mirrored.flip(1)], 1)
-    wi = 2 - 2 * torch.cos(math.pi * torch.arange(2 * rows, dtype=torch.float64) / rows)
-    wj = 2 - 2 * torch.cos(math.pi * torch.arange(2 * cols, dtype=torch.float64) / cols)
-    eigen = wi[:, None] + wj[None, :]
-    eigen[0, 0] = 1.0
-    spectrum = torch.fft.fft2(mirrored) / eigen
-    spectrum[0, 0] = 0.0
-    height = torch.fft.ifft2(spectrum).real[:rows, :cols]
-    return (height - height.mean()).to(dtype)
+    return integrate_differences(along_x, along_rows).to(dtype)
 
 
 def without_tilt(gains: Tensor, lights: LightSet) -> Tensor:

@@ -30,26 +30,46 @@ def alpha_from_backlight(backlight: dict[str, Tensor]) -> Tensor:
 def height_from_normals(normal: Tensor, mm_per_px: tuple[float, float]) -> Tensor:
     """Height (1, H, W) in mm, zero mean, integrated from unit normals (3, H, W).
 
-    Frankot & Chellappa 1988: the least-squares surface whose gradient best matches
-    (∂h/∂x, ∂h/∂y) = (−n_x/n_z, −n_y/n_z), found in the Fourier domain (periodic
-    boundary). x grows with columns, y with −rows (design.md).
+    The least-squares surface whose differences between neighbouring pixels best match
+    the slopes (∂h/∂x, ∂h/∂y) = (−n_x/n_z, −n_y/n_z) averaged over each pair, with the
+    field's edges free (:func:`integrate_differences`): a tilted plane comes back a plane
+    (the periodic Frankot & Chellappa integral used before dropped the mean slope, so a
+    sample tilted by atan 0.1 came back flat). x grows with columns, y with −rows
+    (design.md).
     """
     nz = normal[2].clamp_min(0.05)
-    p = -normal[0] / nz  # ∂h/∂x, per mm
-    q = -normal[1] / nz  # ∂h/∂y
-    h, w = p.shape
+    sx, sy = (normal[0] / nz).double(), (normal[1] / nz).double()
     dx, dy = mm_per_px
-    # in pixel steps along columns (j) and rows (i): ∂h/∂j = p·dx, ∂h/∂i = −q·dy
-    gj, gi = p * dx, -q * dy
-    wj = 2 * math.pi * torch.fft.fftfreq(w, dtype=torch.float64)[None, :]
-    wi = 2 * math.pi * torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
-    gj_f = torch.fft.fft2(gj.double())
-    gi_f = torch.fft.fft2(gi.double())
-    denom = wj**2 + wi**2
-    denom[0, 0] = 1
-    hf = (-1j * wj * gj_f - 1j * wi * gi_f) / denom
-    hf[0, 0] = 0
-    return torch.fft.ifft2(hf).real.float()[None]
+    along_x = -(sx[:, 1:] + sx[:, :-1]) / 2 * dx  # h[i, j + 1] − h[i, j], mm
+    along_rows = (sy[1:] + sy[:-1]) / 2 * dy  # h[i + 1, j] − h[i, j] (rows run down, y up)
+    return integrate_differences(along_x, along_rows).float()[None]
+
+
+def integrate_differences(along_x: Tensor, along_rows: Tensor) -> Tensor:
+    """The field (H, W), zero mean, whose differences between neighbouring pixels best fit
+    ``along_x`` (H, W − 1: h[i, j + 1] − h[i, j]) and ``along_rows`` (H − 1, W: h[i + 1, j] −
+    h[i, j]) in least squares: the normal equations are the grid's Laplacian with the
+    edges free (Neumann), solved exactly in the cosine basis, here by the real Fourier
+    transform of the right-hand side mirrored at the field's edges. In float64."""
+    rows, cols = along_x.shape[0], along_rows.shape[1]
+    rhs = torch.zeros(rows, cols, dtype=torch.float64)  # the differences' transpose applied
+    rhs[:, 1:] += along_x
+    rhs[:, :-1] -= along_x
+    rhs[1:] += along_rows
+    rhs[:-1] -= along_rows
+    mirrored = torch.cat([rhs, rhs.flip(0)], 0)
+    mirrored = torch.cat([mirrored, mirrored.flip(1)], 1)
+    del rhs
+    wi = 2 - 2 * torch.cos(math.pi * torch.arange(2 * rows, dtype=torch.float64) / rows)
+    wj = 2 - 2 * torch.cos(math.pi * torch.arange(cols + 1, dtype=torch.float64) / cols)
+    eigen = wi[:, None] + wj[None, :]
+    eigen[0, 0] = 1.0
+    spectrum = torch.fft.rfft2(mirrored)
+    del mirrored
+    spectrum /= eigen
+    spectrum[0, 0] = 0.0
+    field = torch.fft.irfft2(spectrum, s=(2 * rows, 2 * cols))[:rows, :cols]
+    return field - field.mean()
 
 
 def normals_from_height(height_mm: Tensor, mm_per_px: float) -> Tensor:
