@@ -101,7 +101,6 @@ class AcquireConfig:
             raise MatscanError(f"--target: {self.target!r} is not one of {', '.join(TARGETS)}")
         if not 0 < self.level <= 1:
             raise MatscanError(f"--level: {self.level!r} must be above 0 and at most 1")
-
         if not 0 <= self.max_saturated < 1:
             raise MatscanError(f"--max-saturated: {self.max_saturated!r} must be a fraction of the pixels, below 1")
         low, high = EXPOSURE_LIMITS
