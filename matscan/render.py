@@ -179,6 +179,17 @@ def render(
     return out[0] if unbatched else out
 
 
+def led_lobe(cosine: Tensor, exponent: Tensor) -> Tensor:
+    """An LED's lobe, max(a·(−l), 0)^m (design.md), from the cosine a·(−l) between its
+    axis and the direction to the point: 0 behind the LED (for m above 0; an isotropic
+    emitter, m = 0, lights every way, as 0^0 = 1). The base is kept above 1e-30 where it
+    is used, so the power's gradient stays finite (a clamp alone left (1e-30)^m behind the
+    LED: 0.5 of the light at m = 0.01)."""
+    lit = cosine.clamp_min(1e-30) ** exponent
+    behind = (exponent == 0).to(lit.dtype)
+    return torch.where(cosine > 0, lit, behind)
+
+
 def _shade(
     rho: Tensor,
     f0: Tensor,
@@ -220,7 +231,7 @@ def _shade(
     n_v = nx * vx + ny * vy + nz * vz
     n_h = ((nx * hx + ny * hy + nz * hz) * inv_h).clamp_min(0)
     v_h = ((vx * hx + vy * hy + vz * hz) * inv_h).clamp(0, 1)
-    lobe = (-(comp(axis, 0) * lx + comp(axis, 1) * ly + comp(axis, 2) * lz)).clamp_min(1e-30) ** exponent.unsqueeze(-1)
+    lobe = led_lobe(-(comp(axis, 0) * lx + comp(axis, 1) * ly + comp(axis, 2) * lz), exponent.unsqueeze(-1))
     irradiance = (scale / d2) * lobe  # π·I·(R/d)²·lobe / π, without I
     alpha = ggx_alpha(r[:, 0].unsqueeze(1))
     n_l_c = n_l.clamp_min(1e-7)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -328,3 +329,31 @@ def test_render_maps_gradcheck():
         return render_maps(maps, lights, rig.field_mm, 0.9)
 
     assert torch.autograd.gradcheck(f, inputs)
+
+
+@pytest.mark.parametrize("m", [0.01, 0.05, 0.2, 1.0])
+def test_an_led_lights_nothing_behind_it(m):
+    """design.md's lobe is max(a·(−l), 0)^m: 0 where the LED points away from the point.
+    It was clamped to (1e-30)^m there, which is 0.5 of the light at m = 0.01, and the
+    solver's own geometry did the same."""
+    from matscan.reconstruct.lm import geometry
+    from matscan.rig import Camera, Light, Rig
+
+    # an LED at (100, 0, 50) aimed at (200, 0, 0): the origin lies behind it (a·(−l) = −0.6)
+    led = Light(position_mm=(100.0, 0.0, 50.0), aim_mm=(200.0, 0.0, 0.0), exponent=m)
+    rig = Rig("behind", 225.0, Camera(position_mm=(0.0, 0.0, 225.0)), (1e-3, 1e-3), (led,))
+    lights = rig.light_set(dtype=torch.float64)
+
+    def one(*v):
+        return torch.tensor(v, dtype=torch.float64).view(-1, 1, 1)
+
+    point = torch.zeros(1, 1, 3, dtype=torch.float64)
+
+    def white(light_set):  # a white Lambertian, normal up, at the origin
+        return render(one(1.0, 1.0, 1.0), one(0.0, 0.0, 0.0), one(0.5), one(0.0, 0.0, 1.0), light_set, point)
+
+    assert float(white(lights).abs().max()) == 0.0
+    assert float(geometry(lights, point.view(1, 3)).e.abs().max()) == 0.0
+    # an isotropic emitter (m = 0) lights every way: the same LED lights the origin
+    iso = Rig("iso", 225.0, rig.camera, rig.field_mm, (replace(led, exponent=0.0),))
+    assert float(white(iso.light_set(dtype=torch.float64)).min()) > 0

@@ -55,6 +55,7 @@ from torch import Tensor
 
 from matscan.brdf import ggx_alpha, ggx_distribution, smith_g
 from matscan.errors import MatscanError
+from matscan.render import led_lobe
 from matscan.rig import LightSet
 
 #: From this many photos a capture's weights may be taken from the fitted model
@@ -114,7 +115,7 @@ def geometry(lights: LightSet, points: Tensor) -> Geometry:
     lv = lights.position[:, :, None] - lights.w[:, None, None] * p[None]  # (K, 3, P); w = 0: directional
     d2 = (lv * lv).sum(1)
     l = lv * torch.rsqrt(d2)[:, None]
-    lobe = (-(lights.axis[:, :, None] * l).sum(1)).clamp_min(1e-30) ** lights.exponent[:, None]
+    lobe = led_lobe(-(lights.axis[:, :, None] * l).sum(1), lights.exponent[:, None])
     e = lights.intensity[:, :, None] * ((lights.reference_distance_mm**2 / d2) * lobe)[:, None]
     cams, cw = lights.camera, lights.camera_w
     if bool((cams == cams[:1]).all()) and bool((cw == cw[:1]).all()):
