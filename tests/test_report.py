@@ -45,7 +45,7 @@ def report(tmp_path_factory):
         size=64,
         camera=CameraModel(read_noise=0.001),
     )
-    reconstruct(tmp / "cap", tmp / "out", ReconstructConfig(model="none", refine_steps=10))
+    reconstruct(tmp / "cap", tmp / "out", ReconstructConfig(model="none", refine_steps=10, exr=True))
     return tmp / "out" / "report.html"
 
 
@@ -56,9 +56,12 @@ def test_report_content(report):
     assert "u_light" in text  # the viewer's shader is inlined
     # the title names the capture, not a path on this machine
     assert re.search(r"<title>matscan report: cap</title>", text)
-    # every file written is linked, and every link leads to a file beside the page
+    # every file written is linked (the exr/ folder's too), and every link leads to a file
     links = re.findall(r"<a href='([^']+)'>", text)
-    written = {p.name for p in report.parent.iterdir() if p.name != "report.html"}
+    written = {p.relative_to(report.parent).as_posix() for p in report.parent.rglob("*") if p.is_file()} - {
+        "report.html"
+    }
+    assert "exr/diffuse.exr" in written
     assert set(links) == written, set(links) ^ written
     # the conventions are stated on the page, as matscan.json records them
     import json
@@ -153,7 +156,7 @@ def rti_report(tmp_path_factory):
     assert rig.camera_w == 0 and all(light.direction is not None for light in rig.lights)
     tmp = tmp_path_factory.mktemp("rti-report")
     simulate(read_mapset(sample_maps_path()), rig, tmp / "cap", size=64, camera=CameraModel(read_noise=0.001))
-    reconstruct(tmp / "cap", tmp / "out", ReconstructConfig(model="none", refine_steps=10))
+    reconstruct(tmp / "cap", tmp / "out", ReconstructConfig(model="none", refine_steps=10, exr=True))
     return tmp / "out" / "report.html"
 
 

@@ -194,8 +194,16 @@ def write_report(
         "R": capture.rig.reference_distance_mm,
         "textures": _viewer_textures(maps),
     }
+    exports = record.get("exports", [])
+    inside = {  # a folder export's files (exr/): written by now, beside this page
+        p.relative_to(path.parent).as_posix()
+        for folder in exports
+        if folder.endswith("/")
+        for p in (path.parent / folder).rglob("*")
+        if p.is_file()
+    }
     files = sorted(
-        {*(f for f in record.get("exports", []) if not f.endswith("/")), *_map_files(maps)}
+        {*(f for f in exports if not f.endswith("/")), *_map_files(maps), *inside}
         | {entry["file"] for entry in record.get("confidence", {}).values()}
         | {"matscan.json"}
     )
