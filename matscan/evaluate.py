@@ -569,11 +569,13 @@ def _write_tables(
     if any(c != shared for c in counts):
         rows = [r for r in rows if r["lights"] in shared]
         over = "the light counts every method has (" + ", ".join(n for n in lights if n in shared) + ")"
+    runs = len(materials) * len(encodings) * len(lights) * len(methods)
+    scored = "" if len(rows_all) == runs else f", {len(rows_all)} runs (hsh fits {HSH_TERMS} photos or more)"
     md = [
         "# matscan evaluation",
         "",
         f"{len(materials)} materials × {len(encodings)} encodings × "
-        f"{len(lights)} light subsets × {len(methods)} methods; {time.perf_counter() - t0:.0f} s.",
+        f"{len(lights)} light subsets × {len(methods)} methods{scored}; {time.perf_counter() - t0:.0f} s.",
         "",
         "## By method and number of lights (mean over materials and encodings)",
         "",

@@ -287,6 +287,8 @@ def test_study_scores_hsh_on_relighting_only_and_from_nine_lights(tmp_path):
     assert hsh["novel_rmse"] < 0.5 * base["novel_rmse"] and hsh["rig_rmse"] < 0.5 * base["rig_rmse"]
     text = (tmp_path / "ev" / "results.md").read_text()
     assert "| hsh | 24 |" in text and "| baseline | 6 |" in text
+    # the header counts the runs made: hsh's 6-light run was not (1 × 1 × 2 × 2 would be 4)
+    assert "1 materials × 1 encodings × 2 light subsets × 2 methods, 3 runs (hsh fits 9 photos or more);" in text
     # the per-source table compares the methods over the counts both have
     assert "mean over the light counts every method has (24) and encodings" in text
     with pytest.raises(MatscanError, match="hsh fits 9 coefficients a pixel and needs a subset of 9 or more"):
