@@ -374,7 +374,7 @@ def full_positions(cap: Capture, rounds: int = 6, hold: float = 1e-4) -> torch.T
     valid = (~cap.saturation(list(range(n)))).float().reshape(n, 1, -1)
     h, w = cap.size
     pts = surface_points(cap.field_mm, (h, w)).reshape(-1, 3)
-    base = SolverConfig()
+    base = SolverConfig(censored=False)  # saturated values dropped, as when its results were measured
     cfg = replace(
         base,
         prior_diffuse=base.prior_diffuse * hold,

@@ -12,6 +12,7 @@ from matscan.cli import main
 from matscan.mapset import MapSet, read_mapset
 from matscan.nets import MAPS, PRESETS, MapNets
 from matscan.reconstruct import ReconstructConfig, flat_start, predict_maps, reconstruct_capture, rerender_error
+from matscan.reconstruct.lm import SolverConfig
 from matscan.rig import builtin_rig
 from matscan.samples import sample_maps_path
 
@@ -615,3 +616,95 @@ def test_emissive_on_one_photo_fits_none_and_says_so(tmp_path, capsys):
     assert code == 0, err
     assert "--emissive needs refinement, which one photo" in err and "no emissive map was fitted" in err
     assert read_mapset(tmp_path / "o").emissive is None
+
+
+def test_the_record_and_report_name_the_calibration_applied(tmp_path):
+    # the capture's own calibration file, a file given with --calibration in its place, one
+    # held inline in capture.json, and none: each named in matscan.json and report.html
+    from matscan.calibrate import write_calibration
+
+    _capture(tmp_path, size=16, lights=[0, 4, 8, 12, 16, 20], name="six")
+    cap = tmp_path / "six"
+    scales = {str(k): 1.0 for k in (0, 4, 8, 12, 16, 20)}
+    write_calibration(cap / "own.json", None, scales, {})
+    write_calibration(tmp_path / "other.json", None, scales, {})
+    doc = json.loads((cap / "capture.json").read_text())
+
+    def run(out, *extra):
+        assert main(["reconstruct", str(cap), "--out", str(tmp_path / out), "--model", "none", *extra]) == 0
+        rec = json.loads((tmp_path / out / "matscan.json").read_text())
+        return rec["calibration"], (tmp_path / out / "report.html").read_text()
+
+    named, report = run("none")
+    assert named is None and "<th>calibration</th><td>none</td>" in report
+    (cap / "capture.json").write_text(json.dumps({**doc, "calibration": "own.json"}))
+    named, report = run("own")
+    assert named == "../six/own.json" and "<th>calibration</th><td>../six/own.json</td>" in report
+    named, _ = run("given", "--calibration", str(tmp_path / "other.json"))
+    assert named == "../other.json"
+    inline = json.loads((cap / "own.json").read_text())
+    (cap / "capture.json").write_text(json.dumps({**doc, "calibration": inline}))
+    named, _ = run("inline")
+    assert named == "inline in ../six/capture.json"
+
+
+def test_the_saturation_warning_says_what_the_fit_makes_of_saturated_pixels(tmp_path):
+    # the lm solver reads them as lower bounds; the adam solver (and --emissive) drops them,
+    # and so does lm where a colour matrix with a negative entry makes them no bound
+    from dataclasses import replace
+
+    from matscan.capture.folder import Correction
+    from matscan.reconstruct import check_capture
+
+    cap, _ = _capture(tmp_path, 16, [0, 4, 8])
+    saturated = cap.saturated.clone()
+    saturated[0, :, :2] = True  # 12.5% of the first photo
+    cap = replace(cap, saturated=saturated)
+
+    def said(capture, **cfg):
+        return [w for w in check_capture(capture, ReconstructConfig(**cfg)) if "saturated" in w]
+
+    line = f"{cap.files[0]}: 12.5% of pixels saturated; lower the exposure"
+    assert said(cap) == [f"{line} (the fit reads them only as at least that bright)"]
+    dropped = f"{line} (they are left out of the fit)"
+    assert said(cap, solver="adam") == [dropped]
+    assert said(cap, emissive=True) == [dropped]
+    assert said(cap, lm=SolverConfig(censored=False)) == [dropped]
+    gains = torch.ones(3, 3)
+    mixing = torch.tensor([[1.6, -0.4, -0.2], [-0.3, 1.5, -0.2], [0.0, -0.5, 1.5]])
+    assert said(replace(cap, correction=Correction(mixing, gains, (None,) * 3))) == [dropped]
+    positive = replace(cap, correction=Correction(torch.eye(3) * 1.2, gains, (None,) * 3))
+    assert said(positive)[0].endswith("(the fit reads them only as at least that bright)")
+    assert said(cap, refine="off") == [line]
+
+
+def test_saturated_values_are_dropped_where_a_colour_matrix_makes_them_no_bound(tmp_path):
+    # M · photo with a negative entry: a clipped channel's missing light lowers the others by
+    # a negative share, so the read value may be above the truth; the solver drops them then
+    from dataclasses import replace
+
+    from matscan.capture.folder import Correction
+    from matscan.materials.procedural import generate
+    from matscan.reconstruct.solver import solve_maps
+
+    maps = generate("metallic_print", 24, 3)
+    folder = tmp_path / "metal"
+    simulate(maps, builtin_rig("dome24"), folder, lights=[0, 4, 8, 12, 16, 20], camera=CameraModel(exposure=2.0))
+    cap = load_capture(folder)
+    assert cap.saturated.any()
+    start = flat_start(cap)
+
+    def fit(capture, censored):
+        out, _, _ = solve_maps(start, capture, SolverConfig(censored=censored), strength=0.01)
+        return out.specular
+
+    gains = torch.ones(6, 3)
+    mixing = replace(
+        cap,
+        correction=Correction(
+            torch.tensor([[1.2, -0.1, -0.1], [-0.1, 1.2, -0.1], [-0.1, -0.1, 1.2]]), gains, (None,) * 6
+        ),
+    )
+    assert torch.equal(fit(mixing, True), fit(mixing, False))
+    positive = replace(cap, correction=Correction(torch.eye(3), gains, (None,) * 6))
+    assert not torch.equal(fit(positive, True), fit(positive, False))

@@ -38,7 +38,7 @@ from matscan.nets import MapNets
 from matscan.outputs import RECORD
 from matscan.reconstruct.lm import SolverConfig
 from matscan.reconstruct.networks import capture_mirrors, predict_maps
-from matscan.reconstruct.solver import flat_start, refine_maps, rerender_error, solve_maps
+from matscan.reconstruct.solver import clips_are_bounds, flat_start, refine_maps, rerender_error, solve_maps
 from matscan.reconstruct.surface import alpha_from_backlight, height_from_normals
 from matscan.render import render_maps
 from matscan.rig import LightSet
@@ -222,6 +222,17 @@ def _bright_fraction(capture: Capture, i: int) -> float:
 ASPECT_TOLERANCE = 0.01
 
 
+def calibration_name(capture: Capture, capture_path: Path, out: Path) -> str | None:
+    """The calibration a reconstruction applied, for its record: the file (relative to
+    ``out``, as the record's other paths are), "inline in capture.json" where the capture
+    holds it, or None for none."""
+    if capture.calibration is None:
+        return None
+    if capture.calibration_file is None:
+        return f"inline in {os.path.relpath((capture_path / 'capture.json').resolve(), out)}"
+    return os.path.relpath(Path(capture.calibration_file).resolve(), out)
+
+
 def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
     """Warnings about a capture, each saying what to do: saturated or black photos,
     missing lights, and what reading and calibrating it found (``capture.meta["warnings"]``)."""
@@ -238,19 +249,24 @@ def check_capture(capture: Capture, cfg: ReconstructConfig) -> list[str]:
         # the 99th percentile is below DARK_PHOTO exactly when under 1% of the values reach it
         if _bright_fraction(capture, i) < 0.01:
             dark.append(file)
+    # what the fit makes of them: the lm solver reads them as lower bounds where they are
+    # (clips_are_bounds); the adam solver (and so --emissive) leaves them out
+    if cfg.refine == "off":
+        read = ""
+    elif cfg.solver == "lm" and not cfg.emissive and cfg.lm.censored and clips_are_bounds(capture):
+        read = " (the fit reads them only as at least that bright)"
+    else:
+        read = " (they are left out of the fit)"
     if len(partly) > SATURATION_LINES:  # one line for many: an RTI dome's low ring saturates a glossy panel
         least, most = min(f for _, f in partly), max(f for _, f in partly)
         warnings.append(
             f"{len(partly)} of {len(capture.files)} photos have {least:.1%} to {most:.1%} of their "
             "pixels saturated ("
             + ", ".join(f"{file} {frac:.1%}" for file, frac in partly)
-            + "); lower the exposure (the saturated pixels are left out of the fit)"
+            + f"); lower the exposure{read}"
         )
     else:
-        warnings += [
-            f"{f}: {frac:.1%} of pixels saturated; lower the exposure (they are left out of the fit)"
-            for f, frac in partly
-        ]
+        warnings += [f"{f}: {frac:.1%} of pixels saturated; lower the exposure{read}" for f, frac in partly]
     if dark and len(dark) == len(capture.files):
         warnings.append(
             "every photo is black (was the lens cap on, or the lights off?); the maps mean nothing — retake the capture"
@@ -804,6 +820,7 @@ def reconstruct(
             "conventions": CONVENTIONS,
             "timings_s": {k: round(v, 3) for k, v in res.timings.items()},
         }
+        record["calibration"] = calibration_name(calibrated, capture_path, claim.path)
         if "exposure_ratio" in capture.meta:  # the calibration's scales, brought to this capture's exposure
             record["calibration_exposure_ratio"] = capture.meta["exposure_ratio"]
         if validation is not None:

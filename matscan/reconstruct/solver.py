@@ -17,6 +17,7 @@ with the maps. Work is done in pixel tiles, so memory stays bounded at any size.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 import torch.nn.functional as F
@@ -236,7 +237,14 @@ def _scale_floor(
     }
     normal = pooled["normal"] / pooled["normal"].norm(dim=0, keepdim=True).clamp_min(1e-8)
     small_cfg = SolverConfig(
-        iterations=0, fine_iterations=cfg.fine_iterations + 4, coarse=0, tau=cfg.tau, tile_pixels=hh * ww
+        iterations=0,
+        fine_iterations=cfg.fine_iterations + 4,
+        coarse=0,
+        tau=cfg.tau,
+        tile_pixels=hh * ww,
+        # dropped, as when this was chosen: a clipped peak the pooled model cannot reach
+        # would pin ρ or F0 at 1 and read as a scale too small
+        censored=False,
     )
     for _ in range(tries):
         out, _ = solve(
@@ -277,6 +285,16 @@ def rerender_error(maps: MapSet, capture: Capture, positions: list[int], scale: 
     return (total / count) ** 0.5 if count else float("nan")
 
 
+def clips_are_bounds(capture: Capture) -> bool:
+    """Whether a saturated value, as read, is a lower bound on the light that reached it
+    (what the solver's censored values assume): the photos' gains, exposure ratio and flat
+    fields are positive, but a colour matrix with a negative entry mixes a clipped
+    channel's missing light into the others with a minus sign, so they may read too
+    high. Such captures have their saturated values dropped, as before."""
+    matrix = capture.correction.matrix if capture.correction is not None else None
+    return matrix is None or bool((matrix >= 0).all())
+
+
 def solve_maps(
     start: MapSet,
     capture: Capture,
@@ -293,6 +311,8 @@ def solve_maps(
     (:func:`_fit_scale`). Returns (maps, confidence per map (1, H, W), intensity scale).
     """
     cfg = cfg or SolverConfig()
+    if cfg.censored and not clips_are_bounds(capture):
+        cfg = replace(cfg, censored=False)
     h, w = capture.size
     used = list(range(len(capture.files))) if lights_used is None else list(lights_used)
     lights = capture.lights.select(used)

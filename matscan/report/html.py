@@ -160,6 +160,7 @@ def write_report(
         "rig": record.get("rig"),
         "size (px)": record.get("size_px"),
         "mm per pixel": [round(v, 4) for v in record.get("mm_per_pixel", [])],
+        "calibration": record.get("calibration") or "none",
         "model": record.get("model", {}).get("name"),
         "maps started from": record.get("start"),
         "refined": record.get("refined"),
