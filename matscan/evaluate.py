@@ -330,7 +330,7 @@ def hsh_images(capture: Capture, lights: LightSet) -> Tensor:
 
 def hsh_of_capture(capture: Capture) -> Tensor:
     """The per-pixel HSH coefficients (9, 3, H, W) of a capture's photos (saturated pixels
-    left out of the fit, as the solver leaves them out)."""
+    left out of the fit, as RTI software's fits leave them out)."""
     pts = surface_points(capture.field_mm, capture.size)
     directions, _ = light_vectors(capture.lights, pts)
     valid = (~capture.saturated).float()

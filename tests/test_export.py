@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from matscan.brdf import DIELECTRIC_F0, metallic_to_specular, specular_to_metallic
-from matscan.color import srgb_to_linear
+from matscan.color import linear_to_srgb, srgb_to_linear
 from matscan.export import export_all, specular_residual
 from matscan.imagefile import read_image
 from matscan.mapset import MapSet
@@ -573,8 +573,19 @@ def test_export_of_a_reconstruction_writes_its_exports_again(tmp_path):
             # made from F0 and diffuse as their 8-bit files hold them, so a texel may be split
             # otherwise between metal and dielectric: what they say is the same
             a, b = (_material_read(folder) for folder in (tmp_path / "rec", tmp_path / "exp"))
-            assert float((a - b).abs().max()) < 0.01, name
+            # within 0.01, or two 8-bit sRGB codes where those are more (0.0156 at 0.55, where
+            # a metal's F0 sits)
+            top = torch.maximum(a, b).clamp(0, 1)
+            code = top - srgb_to_linear((linear_to_srgb(top) - 1 / 255).clamp(min=0))
+            assert bool(((a - b).abs() <= torch.clamp(2 * code, min=0.01)).all()), name
         elif name in ("material.gltf", "material.mtlx"):
-            assert _numbers_apart(rec.read_text(), exp.read_text()) < 0.01, name
+            # the specular colour's factor is its texture's largest dielectric F0: a texel at the
+            # split's tolerance may turn metal in one and not the other (the material read above
+            # is still the same), so the factor is held to 1% only where the split is the same
+            apart = _numbers_apart(rec.read_text(), exp.read_text())
+            same_split = (tmp_path / "rec" / "tex_metallic.png").read_bytes() == (
+                tmp_path / "exp" / "tex_metallic.png"
+            ).read_bytes()
+            assert apart < (0.01 if same_split else 0.1), name
         elif name not in ("material.glb", "material.usdz"):  # these hold the files above
             assert exp.read_bytes() == rec.read_bytes(), name
