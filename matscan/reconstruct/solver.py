@@ -243,7 +243,7 @@ def _scale_floor(
         tau=cfg.tau,
         tile_pixels=hh * ww,
         # dropped, as when this was chosen: a clipped peak the pooled model cannot reach
-        # would pin ρ or F0 at 1 and read as a scale too small
+        # would pin ρ or F0 at 1, and the search would raise the scale to unpin them
         censored=False,
     )
     for _ in range(tries):
