@@ -88,6 +88,7 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import replace
 
 import torch
 
@@ -155,9 +156,12 @@ def means(vals: list[tuple[float, float]]) -> tuple[float, float, float, float]:
     )
 
 
-def refined(start: MapSet, cap: Capture, strength: float) -> MapSet:
-    """The ``lm`` solver started from a network's maps and held near them."""
-    return solve_maps(start, cap, ReconstructConfig().lm, strength)[0]
+def refined(start: MapSet, cap: Capture, strength: float, networks: bool = False) -> MapSet:
+    """The ``lm`` solver started from a network's maps and held near them; from the dome24
+    networks' (``networks``) without the steps on the pixels still converging, as
+    ``reconstruct`` runs it (:mod:`matscan.reconstruct.lm`)."""
+    cfg = ReconstructConfig().lm
+    return solve_maps(start, cap, replace(cfg, more_iterations=0) if networks else cfg, strength)[0]
 
 
 def spread(n: int, count: int) -> list[int]:
@@ -191,8 +195,6 @@ def load_spec(spec: str):
 def materials_of(size: int, procedural: bool = False, tilt: float = 0.0) -> list[MapSet]:
     """The 8 non-procedural evaluation sets, or 8 procedural materials training never drew;
     with ``tilt`` each lies tilted by that many degrees toward the azimuth 30°."""
-    from dataclasses import replace
-
     from matscan.anyrig import tilted
 
     if procedural:
@@ -298,7 +300,7 @@ def main() -> None:
             start = predict_maps(nets, cap)
             rows.setdefault(("dome24", count, "dome24 networks"), []).append(scores(start, maps, lights, dome.field_mm))
             rows.setdefault(("dome24", count, "dome24 + solver"), []).append(
-                scores(refined(start, cap, 1.0), maps, lights, dome.field_mm)
+                scores(refined(start, cap, 1.0, networks=True), maps, lights, dome.field_mm)
             )
             start = MapSet(**predict_capture(anyrig, cap))
             rows.setdefault(("dome24", count, "any-rig network"), []).append(scores(start, maps, lights, dome.field_mm))

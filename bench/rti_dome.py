@@ -14,9 +14,11 @@ predict the 20 test photos, which none saw.
 Printed per material: PSNR (dB) and SSIM of the test photos (sRGB, clipped) for HSH and
 the solver, the solver's normal error (mean angle, degrees) and its map errors (RMSE of
 diffuse, specular, roughness); then the same for the solver started from the shipped
-any-rig network's maps (``reconstruct --anyrig default``); then the means.
+any-rig network's maps (``reconstruct --anyrig default``); then the means. With
+``--dropped`` the solver drops saturated values instead of reading them as "at least the
+clip" (``SolverConfig.censored``, off), as it did before 2026-12-01.
 
-Run by hand: .venv/bin/python bench/rti_dome.py [SIZE]   (default 128)
+Run by hand: .venv/bin/python bench/rti_dome.py [SIZE] [--dropped]   (default 128)
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from matscan.losses import ssim
 from matscan.materials.artist import ARTIST_NAMES, artist_material
 from matscan.materials.photos import TINTS, photo_material
 from matscan.reconstruct import ReconstructConfig, reconstruct_capture
+from matscan.reconstruct.lm import SolverConfig
 from matscan.render import render_maps
 from matscan.rig import Camera, Light, Rig
 from matscan.weights import load_anyrig
@@ -85,7 +88,9 @@ def main() -> None:
 
     usage(__doc__)
     torch.set_num_threads(2)
-    size = int(sys.argv[1]) if len(sys.argv) > 1 else 128
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
+    size = int(args[0]) if args else 128
+    cfg = ReconstructConfig(model="none", refine="on", lm=SolverConfig(censored="--dropped" not in sys.argv))
     materials = [(f"{n} (artist)", artist_material(n, size)) for n in ARTIST_NAMES]
     materials += [(f"{n} (photo)", photo_material(n, size)) for n in TINTS]
     train, test = rti_rig(TRAIN), rti_rig(TEST)
@@ -114,7 +119,7 @@ def main() -> None:
         hsh_ssim = float(ssim(hsh, linear_to_srgb(truth.clamp(0, 1))))
         row: list[float] = [hsh_psnr, hsh_ssim]
         for start in (None, anyrig):
-            res = reconstruct_capture(cap, ReconstructConfig(model="none", refine="on"), anyrig=start)
+            res = reconstruct_capture(cap, cfg, anyrig=start)
             with torch.no_grad():
                 pred = render_maps(res.maps, test.light_set(), test.field_mm) * res.intensity_scale
             psnr, s = scores(pred, truth)

@@ -708,3 +708,22 @@ def test_saturated_values_are_dropped_where_a_colour_matrix_makes_them_no_bound(
     assert torch.equal(fit(mixing, True), fit(mixing, False))
     positive = replace(cap, correction=Correction(torch.eye(3), gains, (None,) * 6))
     assert not torch.equal(fit(positive, True), fit(positive, False))
+
+
+def test_the_solver_steps_on_from_flat_maps_and_not_from_the_networks_maps(tmp_path, monkeypatch):
+    # the full level's steps on the pixels still converging: from flat maps with 6 photos
+    # or more, never from the networks' maps (lm's module doc, runs/lm-converge/README.md)
+    from matscan.nets import preset
+    from matscan.reconstruct import job, lm
+
+    nets = MapNets(24, preset("tiny"))
+    three, _ = _capture(tmp_path / "t", size=16, lights=[0, 8, 16])
+    six, _ = _capture(tmp_path / "s", size=16, lights=[0, 4, 8, 12, 16, 20])
+    asked = []
+    real = lm.levenberg_marquardt
+    monkeypatch.setattr(lm, "levenberg_marquardt", lambda p, t, it, more=0: asked.append(more) or real(p, t, it, more))
+    for capture, model, more in ((six, None, 8), (six, nets, 0), (three, None, 0)):
+        asked.clear()
+        reconstruct_capture(capture, ReconstructConfig(refine="on"), model)
+        assert asked and set(asked) == {more}, (model is None, more, asked)
+    assert job.ReconstructConfig().lm.more_iterations == 8

@@ -599,8 +599,10 @@ def reconstruct_capture(
     if refine and cfg.solver == "lm" and not cfg.emissive:
         t0 = time.perf_counter()
         strength = 1.0 if used_nets else anyrig_hold(n) if begun == "any-rig network" else FLAT_START_PRIOR
+        # the networks' start keeps the fixed steps' hold (lm's module doc)
+        lm_cfg = replace(cfg.lm, more_iterations=0) if used_nets else cfg.lm
         result.maps, result.confidence, result.intensity_scale = solve_maps(
-            start, capture, cfg.lm, strength, progress=progress
+            start, capture, lm_cfg, strength, progress=progress
         )
         result.refined = True
         timings["refine_s"] = time.perf_counter() - t0

@@ -47,6 +47,15 @@ value, also a lower bound. Dropped instead, as before, a highlight's peak could 
 anywhere below the clip, and metals whose peaks clip came out with F0 too low and
 roughness too high (runs/lm-censored/README.md).
 
+The full level takes ``fine_iterations`` steps, then, from ``more_from`` photos, up to
+``more_iterations`` more on the pixels still converging (those whose last accepted step
+lowered their cost by more than :data:`CONVERGED` and whose damping has not reached
+:data:`STUCK`), solved as a smaller problem. From flat maps two steps left pixels far
+from their minimum (a black leather on a 49-light dome relit at 30.2 dB where converged
+it relights at 44.4); from the networks' maps, and with fewer photos, the fixed steps'
+hold on the start relit better, so ``reconstruct`` gives the networks' start none
+(runs/lm-converge/README.md).
+
 The prior: ridge terms hold ρ and F0 near their start (the networks' maps) and
 quadratic terms hold r and the slopes near theirs, with fixed strengths. Where the
 photos constrain a value (a highlight constrains F0 and r), the data's curvature is
@@ -86,6 +95,8 @@ class SolverConfig:
 
     iterations: int = 12  # Levenberg–Marquardt steps on the coarse level
     fine_iterations: int = 2  # and on the full-resolution level (at least 1)
+    more_iterations: int = 8  # then at most this many on the pixels still converging (module doc),
+    more_from: int = REWEIGHT_FROM  # from this many photos on (reconstruct gives the networks' start none)
     coarse: int = 96  # longer side of the coarse level in pixels (0: no coarse level)
     tau: float = 0.02  # relative residuals are (m − y)/(y + τ)
     prior_diffuse: float = 0.1
@@ -99,8 +110,15 @@ class SolverConfig:
     censored: bool = True  # saturated values count as "at least the clip" (module doc), not dropped
 
     def __post_init__(self) -> None:
-        integers = (("iterations", 0), ("fine_iterations", 1), ("coarse", 0), ("tile_pixels", 1), ("reweight", 0))
-        for name, low in (*integers, ("reweight_from", 1)):
+        integers = (
+            ("iterations", 0),
+            ("fine_iterations", 1),
+            ("more_iterations", 0),
+            ("coarse", 0),
+            ("tile_pixels", 1),
+            ("reweight", 0),
+        )
+        for name, low in (*integers, ("reweight_from", 1), ("more_from", 1)):
             value = getattr(self, name)  # fine_iterations ≥ 1: the confidence needs one Jacobian
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise MatscanError(f"solver.{name}: {value!r} must be an integer of at least {low}")
@@ -296,44 +314,118 @@ THETA_HIGH = torch.tensor([1.0, 3.0, 3.0])[:, None]
 _STEPS = (1e-3, 1e-3, 1e-3)  # forward-difference steps for r, s_x, s_y
 
 
-def levenberg_marquardt(p: Problem, theta: Tensor, iterations: int) -> tuple[Tensor, Tensor]:
-    """Refine θ (3, P) for ``iterations`` steps; returns θ and the data part of JᵀJ's
-    diagonal (3, P) at the end (the curvature the confidence uses)."""
+def _subset(p: Problem, idx: Tensor) -> Problem:
+    """The :class:`Problem` of the pixels ``idx`` (P',) of ``p``, censored values included."""
+    g = p.geo
+    geo = Geometry(l=g.l[..., idx], v=g.v[..., idx], e=g.e[..., idx], h=g.h[..., idx], w=g.w[..., idx])
+    sub = Problem(
+        y=p.y[..., idx],
+        wt=p.wt[..., idx],
+        geo=geo,
+        rho0=p.rho0[:, idx],
+        f00=p.f00[:, idx],
+        theta0=p.theta0[:, idx],
+        lam_d=p.lam_d[:, idx],
+        lam_s=p.lam_s[:, idx],
+        lam_t=p.lam_t,
+        sw=p.sw[..., idx],
+    )
+    if p.cflat is not None:
+        total, n = p.y.shape[-1], len(idx)
+        place = torch.full((total,), -1, dtype=torch.long)
+        place[idx] = torch.arange(n)
+        pixel, row = p.cflat % total, p.cflat // total  # row: photo × channel
+        keep = place[pixel] >= 0
+        if bool(keep.any()):
+            sub.cflat = row[keep] * n + place[pixel[keep]]
+            sub.cout = (row[keep] % p.y.shape[1]) * n + place[pixel[keep]]
+            sub.cwe, sub.cye = p.cwe[keep], p.cye[keep]
+    return sub
+
+
+def _lm_step(
+    p: Problem, theta: Tensor, res: Tensor, cost: Tensor, mu: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """One damped Gauss–Newton step per pixel (:func:`levenberg_marquardt`): θ, residuals,
+    cost and damping after it, and the data part of JᵀJ's diagonal at the θ it started from."""
     k3 = p.y.shape[0] * p.y.shape[1]  # the data rows
+    cols = []
+    for j, h in enumerate(_STEPS):
+        # a backward difference where a forward one would pass the upper bound (at r = 1
+        # a forward step is clamped away and the column would be zero)
+        step = torch.where(theta[j] + h > THETA_HIGH[j, 0], -h, h)
+        tp = theta.clone()
+        tp[j] = tp[j] + step
+        rj, _, _ = residuals(p, tp)
+        cols.append((rj - res) / step)
+    # JᵀJ and Jᵀr from the columns (R, P): products summed over residuals (einsum
+    # would batch over pixels, which is many times slower here)
+    jtj = torch.empty(3, 3, *theta.shape[1:], dtype=theta.dtype)
+    for i in range(3):
+        for j in range(i, 3):
+            jtj[i, j] = jtj[j, i] = (cols[i] * cols[j]).sum(0)
+    jtr = torch.stack([(c * res).sum(0) for c in cols])
+    jtj_data = torch.stack([c[:k3].square().sum(0) for c in cols])
+    damped = jtj.clone()
+    for i in range(3):
+        damped[i, i] = jtj[i, i] * (1 + mu) + 1e-9
+    step = _solve3(damped, -jtr)
+    trial = torch.max(torch.min(theta + step, THETA_HIGH.to(theta)), THETA_LOW.to(theta))
+    res_t, _, _ = residuals(p, trial)
+    cost_t = (res_t * res_t).sum(0)
+    better = cost_t < cost
+    theta = torch.where(better[None], trial, theta)
+    res = torch.where(better[None], res_t, res)
+    cost = torch.where(better, cost_t, cost)
+    mu = torch.where(better, mu * 0.3, mu * 10).clamp(1e-6, 1e6)
+    return theta, res, cost, mu, jtj_data
+
+
+#: A pixel is still converging while its last accepted step lowered its cost by more than
+#: this share and its damping is below :data:`STUCK` (``SolverConfig.more_iterations``).
+CONVERGED = 1e-3
+#: Damping at which a pixel's steps are taken as going nowhere (five rejected in a row
+#: from the start's 1e-2).
+STUCK = 1e3
+
+
+def levenberg_marquardt(p: Problem, theta: Tensor, iterations: int, more: int = 0) -> tuple[Tensor, Tensor]:
+    """Refine θ (3, P) for ``iterations`` steps, then up to ``more`` steps on the pixels
+    still converging (:data:`CONVERGED`); returns θ and the data part of JᵀJ's diagonal
+    (3, P) at each pixel's last step (the curvature the confidence uses)."""
     mu = torch.full_like(theta[0], 1e-2)
     res, _, _ = residuals(p, theta)
     cost = (res * res).sum(0)
     jtj_data = torch.zeros_like(theta)
+    gain = torch.full_like(cost, math.inf)  # the share of cost each pixel's last accepted step removed
     for _ in range(iterations):
-        cols = []
-        for j, h in enumerate(_STEPS):
-            # a backward difference where a forward one would pass the upper bound (at r = 1
-            # a forward step is clamped away and the column would be zero)
-            step = torch.where(theta[j] + h > THETA_HIGH[j, 0], -h, h)
-            tp = theta.clone()
-            tp[j] = tp[j] + step
-            rj, _, _ = residuals(p, tp)
-            cols.append((rj - res) / step)
-        # JᵀJ and Jᵀr from the columns (R, P): products summed over residuals (einsum
-        # would batch over pixels, which is many times slower here)
-        jtj = torch.empty(3, 3, *theta.shape[1:], dtype=theta.dtype)
-        for i in range(3):
-            for j in range(i, 3):
-                jtj[i, j] = jtj[j, i] = (cols[i] * cols[j]).sum(0)
-        jtr = torch.stack([(c * res).sum(0) for c in cols])
-        jtj_data = torch.stack([c[:k3].square().sum(0) for c in cols])
-        damped = jtj.clone()
-        for i in range(3):
-            damped[i, i] = jtj[i, i] * (1 + mu) + 1e-9
-        step = _solve3(damped, -jtr)
-        trial = torch.max(torch.min(theta + step, THETA_HIGH.to(theta)), THETA_LOW.to(theta))
-        res_t, _, _ = residuals(p, trial)
-        cost_t = (res_t * res_t).sum(0)
-        better = cost_t < cost
-        theta = torch.where(better[None], trial, theta)
-        res = torch.where(better[None], res_t, res)
-        cost = torch.where(better, cost_t, cost)
-        mu = torch.where(better, mu * 0.3, mu * 10).clamp(1e-6, 1e6)
+        before = cost
+        theta, res, cost, mu, jtj_data = _lm_step(p, theta, res, cost, mu)
+        gain = torch.where(cost < before, (before - cost) / before.clamp_min(1e-30), gain)
+    if more == 0 or iterations == 0:
+        return theta, jtj_data
+    idx = ((gain > CONVERGED) & (mu < STUCK)).nonzero()[:, 0]
+    sub = None
+    for _ in range(more):
+        if len(idx) == 0:
+            break
+        if sub is None:  # the pixels still converging, as one problem
+            sub, at = _subset(p, idx), idx
+            st, sr, sc, smu, sj, sg = theta[:, at], res[:, at], cost[at], mu[at], jtj_data[:, at], gain[at]
+            keep = torch.ones(len(at), dtype=torch.bool)
+        before = sc
+        st2, sr2, sc2, smu2, sj2 = _lm_step(sub, st, sr, sc, smu)
+        # pixels that have converged keep what they had; the others take the step
+        st, sr, sj = (torch.where(keep[None], new, old) for new, old in ((st2, st), (sr2, sr), (sj2, sj)))
+        sc, smu = torch.where(keep, sc2, sc), torch.where(keep, smu2, smu)
+        sg = torch.where(keep & (sc < before), (before - sc) / before.clamp_min(1e-30), sg)
+        keep = keep & (sg > CONVERGED) & (smu < STUCK)
+        if int(keep.sum()) * 2 < len(at):  # half have converged: a smaller problem
+            theta[:, at], jtj_data[:, at] = st, sj
+            res[:, at], cost[at], mu[at], gain[at] = sr, sc, smu, sg
+            idx, sub = at[keep], None
+    if sub is not None:
+        theta[:, at], jtj_data[:, at] = st, sj
     return theta, jtj_data
 
 
@@ -541,6 +633,7 @@ def solve_rows(
     conf = {name: torch.empty(1, h, w) for name in ("diffuse", "specular", "roughness", "normal")}
     rows = max(1, cfg.tile_pixels // w)
     passes = reweight_passes(cfg, k)
+    more = cfg.more_iterations if k >= cfg.more_from else 0
     tiles = math.ceil(h / rows)
     # every stride-th pixel's values (by its place in the image, so the same whatever the
     # tiles) measure the noise between sweeps: NOISE_SAMPLE values or so
@@ -573,7 +666,7 @@ def solve_rows(
                 theta = px(out["theta"])
                 m = _model_of(px(out["diffuse"]), px(out["specular"]), theta, prob.geo)
                 prob = replace(prob, wt=args[1].expand_as(m) / (m + tau) ** 2, sw=None)
-            theta, jtj = levenberg_marquardt(prob, theta, cfg.fine_iterations)
+            theta, jtj = levenberg_marquardt(prob, theta, cfg.fine_iterations, more)
             a, s1, s0 = bases(theta, prob.geo)
             rho, f0, haa, hss = linear_solve(prob, a, s1, s0)
             shape = (r1 - r0, w)

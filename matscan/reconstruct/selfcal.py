@@ -200,9 +200,10 @@ def estimate_gains(capture: Capture, cfg: ReconstructConfig, rounds: int = ROUND
     h, w = capture.size
     factor = max(1, math.ceil(max(h, w) / ROUND_SIDE))
     small = reduced(capture, factor)
-    # its fits drop saturated values, as when its settings were chosen and measured (the
-    # censored ones moved a tilted sample's gains 1.9% → 2.5% off; runs/lm-censored/README.md)
-    lm = replace(cfg.lm, prior_roughness=cfg.lm.prior_roughness * ROUGHNESS_HOLD, censored=False)
+    # its fits drop saturated values and take the full level's fixed steps only, as when its
+    # settings were chosen and measured (the censored ones moved a tilted sample's gains
+    # 1.9% → 2.5% off; runs/lm-censored/README.md, runs/lm-converge/README.md)
+    lm = replace(cfg.lm, prior_roughness=cfg.lm.prior_roughness * ROUGHNESS_HOLD, censored=False, more_iterations=0)
     level = fits_gradient(capture, cfg)
     fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, lm=lm, **SELF_CALIBRATION_OFF)
     gains, read, updated, before, after = _rounds(small, fit_cfg, level, rounds)

@@ -245,6 +245,7 @@ def _scale_floor(
         # dropped, as when this was chosen: a clipped peak the pooled model cannot reach
         # would pin ρ or F0 at 1, and the search would raise the scale to unpin them
         censored=False,
+        more_iterations=0,  # the fixed steps it was chosen with
     )
     for _ in range(tries):
         out, _ = solve(
