@@ -95,7 +95,7 @@ class SolverConfig:
 
     iterations: int = 12  # Levenberg–Marquardt steps on the coarse level
     fine_iterations: int = 2  # and on the full-resolution level (at least 1)
-    more_iterations: int = 8  # then at most this many on the pixels still converging (module doc),
+    more_iterations: int = 8  # then at most this many on the pixels still converging (module doc)
     more_from: int = REWEIGHT_FROM  # from this many photos on (reconstruct gives the networks' start none)
     coarse: int = 96  # longer side of the coarse level in pixels (0: no coarse level)
     tau: float = 0.02  # relative residuals are (m − y)/(y + τ)
