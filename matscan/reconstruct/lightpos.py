@@ -1289,6 +1289,13 @@ def _sig4(v: float) -> float:
     return float(f"{v:.4g}")
 
 
+def _fixed_steps(cfg: ReconstructConfig):
+    """The solver settings of the joint fit's own maps: the full level's fixed steps only,
+    as when its settings were chosen and measured (the final fit after it takes the steps
+    on the pixels still converging; runs/lm-converge/README.md)."""
+    return replace(cfg.lm, more_iterations=0)
+
+
 def estimate_held_gains(
     capture: Capture, gains: Tensor, cfg: ReconstructConfig, progress: bool = False, level: bool | None = None
 ) -> tuple[Tensor, dict[str, Any]]:
@@ -1310,7 +1317,7 @@ def estimate_held_gains(
     h, w = capture.size
     factor = max(1, math.ceil(max(h, w) / POSITION_SIDE))
     small = reduced(capture, factor)
-    fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, **SELF_CALIBRATION_OFF)
+    fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, lm=_fixed_steps(cfg), **SELF_CALIBRATION_OFF)
     start = reconstruct_capture(with_gains(small, gains), fit_cfg, None)
     shared = SHARED_F0 if cfg.shared_f0 is None else cfg.shared_f0
     level = selfcal.fits_gradient(capture, cfg) if level is None else level
@@ -1377,16 +1384,16 @@ def estimate_positions(
     h, w = capture.size
     factor = max(1, math.ceil(max(h, w) / POSITION_SIDE))
     small = reduced(capture, factor)
-    fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, **SELF_CALIBRATION_OFF)
+    fit_cfg = replace(cfg, refine="on", solver="lm", validate=0, lm=_fixed_steps(cfg), **SELF_CALIBRATION_OFF)
     start_cfg = fit_cfg
     if START_PRIOR != 1.0 or START_ROUGHNESS_PRIOR != 1.0:  # the start's maps held less near the solver's start
         held = {k: getattr(cfg.lm, k) * START_PRIOR for k in _PRIORS}
         held["prior_roughness"] *= START_ROUGHNESS_PRIOR
-        start_cfg = replace(fit_cfg, lm=replace(cfg.lm, **held))
+        start_cfg = replace(fit_cfg, lm=replace(fit_cfg.lm, **held))
     start = reconstruct_capture(with_gains(small, gains), start_cfg, None)
     alternate = None
     if WEAK_START > 0:  # a third start, its maps held less near the solver's flat start
-        weak_cfg = replace(fit_cfg, lm=replace(cfg.lm, **{k: getattr(cfg.lm, k) * WEAK_START for k in _PRIORS}))
+        weak_cfg = replace(fit_cfg, lm=replace(fit_cfg.lm, **{k: getattr(cfg.lm, k) * WEAK_START for k in _PRIORS}))
         weak = reconstruct_capture(with_gains(small, gains), weak_cfg, None)
         alternate = (weak.maps, gains * weak.intensity_scale)
     shared = SHARED_F0 if cfg.shared_f0 is None else cfg.shared_f0

@@ -384,8 +384,9 @@ def _lm_step(
 #: A pixel is still converging while its last accepted step lowered its cost by more than
 #: this share and its damping is below :data:`STUCK` (``SolverConfig.more_iterations``).
 CONVERGED = 1e-3
-#: Damping at which a pixel's steps are taken as going nowhere (five rejected in a row
-#: from the start's 1e-2).
+#: Damping at which a pixel's steps are taken as going nowhere (six rejected in a row
+#: from the start's 1e-2, in float32). A pixel none of whose steps was accepted counts as
+#: still converging until then.
 STUCK = 1e3
 
 
