@@ -22,9 +22,15 @@ With ``--held-out`` the materials are 13 others, on which the estimator's consta
 not chosen: ten procedural families the list above lacks (seed 2), the photo-built grass
 and the artist-style embossed coins and worn metal. ``--estimator=HOLD,SHARE`` sets
 :data:`matscan.reconstruct.selfcal.ROUGHNESS_HOLD` and ``MIN_PHOTO_SHARE`` (``1,0`` is the
-estimator before either existed).
+estimator before either existed). ``--held=off|unread|always`` sets
+:data:`matscan.reconstruct.selfcal.HELD_GAINS` (whether the intensities are fitted with
+the maps, every light held; runs/selfcal-held/README.md). Each row ends with the path the
+self-calibration took: ``read`` (the estimate kept), ``refused`` or ``unread`` (the rig
+file's intensities kept), and ``+held`` where the joint fit with the lights held gave the
+gains.
 
-Run by hand: .venv/bin/python bench/selfcal.py [SIZE] [--held-out] [--estimator=HOLD,SHARE]   (default 128)
+Run by hand: .venv/bin/python bench/selfcal.py [SIZE] [--held-out] [--estimator=HOLD,SHARE] [--held=MODE]
+(default 128)
 """
 
 from __future__ import annotations
@@ -99,6 +105,8 @@ def main() -> None:
         if a.startswith("--estimator="):
             hold, share = a.split("=", 1)[1].split(",")
             estimator.ROUGHNESS_HOLD, estimator.MIN_PHOTO_SHARE = float(hold), float(share)
+        if a.startswith("--held="):
+            estimator.HELD_GAINS = a.split("=", 1)[1]
     size = int(args[0]) if args else 128
     if "--held-out" in sys.argv:
         families = ("woven_twill", "woven_satin", "leather_embossed", "weave_heavy", "corrugated")
@@ -112,7 +120,10 @@ def main() -> None:
         materials += [(f"{f} (metal)", generate(f, size, 1)) for f in ("metal_brushed",)]
         materials += [(f"{n} (photo)", photo_material(n, size)) for n in ("brick", "gravel")]
         materials += [(f"{n} (artist)", artist_material(n, size)) for n in ("foil-print", "black-leather", "lacquer")]
-    print(f"estimator: ROUGHNESS_HOLD {estimator.ROUGHNESS_HOLD}, MIN_PHOTO_SHARE {estimator.MIN_PHOTO_SHARE}")
+    print(
+        f"estimator: ROUGHNESS_HOLD {estimator.ROUGHNESS_HOLD}, MIN_PHOTO_SHARE {estimator.MIN_PHOTO_SHARE}, "
+        f"HELD_GAINS {estimator.HELD_GAINS}"
+    )
     cfg = ReconstructConfig(model="none", refine="on")
     rows = []
     t0 = time.perf_counter()
@@ -127,12 +138,15 @@ def main() -> None:
         selfcal = reconstruct_capture(cap, self_cfg)
         both = reconstruct_capture(ideal_cap, self_cfg)
         est = selfcal.light_gains
+        rec = selfcal.self_calibration
+        path = "read" if rec["updated"] else "refused" if "rejected" in rec else "unread"
+        path += "+held" if "held_gains" in rec else ""
         err = (est / gains - 1).abs()
         psnr = [novel_psnr(r.maps, r.intensity_scale, maps, cap.field_mm) for r in (ideal, nominal, selfcal, both)]
         rows.append((float(err.max()), float(err.mean()), *psnr))
         print(
             f"{name:24s} {rows[-1][0]:12.4f} {rows[-1][1]:7.4f}   {psnr[0]:9.2f} {psnr[1]:8.2f} {psnr[2]:9.2f}"
-            f" {psnr[3]:11.2f}"
+            f" {psnr[3]:11.2f}  {path}"
         )
     means = [sum(r[j] for r in rows) / len(rows) for j in range(6)]
     print(

@@ -278,6 +278,7 @@ def _job_with(monkeypatch, record: dict, cfg: ReconstructConfig) -> tuple[dict, 
 
     monkeypatch.setattr(selfcal, "estimate_gains", lambda capture, cfg: (torch.ones(24, 3), dict(record)))
     monkeypatch.setattr(lightpos, "estimate_positions", positions)
+    monkeypatch.setattr(selfcal, "HELD_GAINS", "off")  # the warnings where the capture's own intensities are kept
     cap = _exact_capture(generate("paper", 32, 1), torch.ones(24, 3))
     res = reconstruct_capture(cap, cfg)
     return seen, [w for w in res.warnings if w.startswith("--self-calibrate:")]
@@ -436,6 +437,45 @@ def test_gains_stay_when_too_few_photos_can_be_read(monkeypatch):
     assert float(est[16:24:2].mean() / est[17:24:2].mean()) > 1.03
 
 
+def test_unread_intensities_are_fitted_with_the_lights_held(monkeypatch):
+    """A brushed metal (32², noise 0.002) under LEDs ±20% in brightness shows no photo
+    enough diffuse reflection to read its gain. ``--self-calibrate`` then fits the
+    intensities jointly with the maps, every light held at its place
+    (``selfcal.HELD_GAINS`` "unread"; runs/selfcal-held/README.md): against the true
+    gains (each channel's overall factor aside, which the albedo takes) they come within
+    half the rig file's error (measured: RMS of the log error 0.066 against 0.136), the
+    record holds them, and the warning says so. With ``HELD_GAINS`` "off" the rig file's
+    intensities are kept, as before."""
+    maps = generate("metal_brushed", 32, 1)
+    gains = _gains()
+    lights = RIG.light_set()
+    photos = render_maps(maps, lights.with_intensity(lights.intensity * gains), RIG.field_mm)
+    photos = (photos + 0.002 * torch.randn(photos.shape, generator=torch.Generator().manual_seed(1))).clamp(0, 1)
+    files = tuple(f"led_{k:02d}.png" for k in range(24))
+    cap = Capture(RIG, RIG.field_mm, "linear", photos, photos[:, :1] > 1, tuple(range(24)), lights, files)
+    cfg = ReconstructConfig(model="none", refine="on", self_calibrate=True)
+
+    def off(g):  # RMS of the log error, each channel's overall factor removed
+        e = (g / gains).log()
+        return float((e - e.mean(0)).square().mean().sqrt())
+
+    assert selfcal.HELD_GAINS == "unread"
+    res = reconstruct_capture(cap, cfg)
+    record = res.self_calibration
+    assert record["updated"] is False and "rejected" not in record and record["photos_read"] == 0
+    held = record["held_gains"]["light_gains"]
+    torch.testing.assert_close(torch.tensor([held[f] for f in files]), res.light_gains, atol=1e-5, rtol=0)
+    assert off(res.light_gains) < 0.5 * off(torch.ones(24, 3)), (off(res.light_gains), off(torch.ones(24, 3)))
+    said = [w for w in res.warnings if w.startswith("--self-calibrate:")]
+    assert len(said) == 1 and "only 0 of 24 photos" in said[0] and "every light held at its place" in said[0]
+    assert not any("rig file's intensities are kept" in w for w in res.warnings)
+    assert res.lights is None  # the places stay the rig file's
+    monkeypatch.setattr(selfcal, "HELD_GAINS", "off")
+    before = reconstruct_capture(cap, cfg)
+    assert "held_gains" not in before.self_calibration and torch.equal(before.light_gains, torch.ones(24, 3))
+    assert sum("the rig file's intensities are kept" in w for w in before.warnings) == 1
+
+
 def test_an_estimate_that_fits_the_photos_worse_is_not_kept(monkeypatch):
     """A black knit (128², 8-bit sRGB with the camera's noise) under a dome24 whose LEDs
     are ±5 mm off and ±20% in brightness (bench/nearcal.py's second draw): 16 of its 24
@@ -472,6 +512,7 @@ def test_an_estimate_that_fits_the_photos_worse_is_not_kept(monkeypatch):
         assert record["fallback"]["rerender_rmse"] > record["rerender_rmse"]["before"]
         assert record["rerender_rmse"]["after"] == choice["no gradient"]
     torch.testing.assert_close(est, torch.ones(24, 3), atol=0, rtol=0)
+    monkeypatch.setattr(selfcal, "HELD_GAINS", "off")  # the refusal's own warning (held: a 128² joint fit)
     res = reconstruct_capture(cap, replace(cfg, self_calibrate=True))
     assert sum("no better" in w and "kept" in w for w in res.warnings) == 1
 

@@ -174,6 +174,14 @@ class Result:
     self_calibration: dict[str, Any] | None = None  # its record
 
 
+#: From this many photos the dome24 networks' start takes the ``lm`` solver's steps on
+#: where pixels still converge (``SolverConfig.more_iterations``), as every other start
+#: does from ``more_from``; with fewer, the fixed steps' hold on the networks' maps
+#: relit better (at 2, 3 and 10 lights of the engine study; runs/lm-converge/README.md).
+#: None: never. runs/lm-converge-nets/README.md has the rule.
+NETWORKS_MORE_FROM: int | None = None
+
+
 #: Prior strength of the ``lm`` solver when it starts from flat maps (no networks):
 #: the start knows nothing, so the photos decide nearly everything.
 FLAT_START_PRIOR = 0.2
@@ -443,14 +451,22 @@ def reconstruct_capture(
         # simulated paper and twill 0.10 and 0.14 dB (docs/rti.md, "A dome calibrated once");
         # the rig file's refused (a knit's: the estimate too poor) are fitted with the lights held
         kept = calibrated and "rejected" in record and not refit
-        if cfg.self_calibrate_positions and kept:
-            notes.append(
-                "--self-calibrate-positions: the calibration's intensities are kept, and so are "
-                + ("the calibration's positions" if placed else "the rig file's positions")
-                + " (fitted from these photos where the intensities were right already, a simulated brick's lights "
-                "went 1.39 mm astray: docs/rti.md)"
-            )
-        elif cfg.self_calibrate_positions and not record["updated"] and not refit:
+        from matscan.reconstruct import selfcal
+
+        if selfcal.HELD_GAINS not in ("off", "unread", "always"):
+            raise ValueError(f"selfcal.HELD_GAINS: off, unread or always, not {selfcal.HELD_GAINS!r}")
+        # --self-calibrate alone fits the unread intensities with the lights held too
+        # (selfcal.HELD_GAINS; runs/selfcal-held/README.md)
+        unread_held = cfg.self_calibrate_positions or selfcal.HELD_GAINS != "off"
+        if kept:
+            if cfg.self_calibrate_positions:
+                notes.append(
+                    "--self-calibrate-positions: the calibration's intensities are kept, and so are "
+                    + ("the calibration's positions" if placed else "the rig file's positions")
+                    + " (fitted from these photos where the intensities were right already, a simulated brick's "
+                    "lights went 1.39 mm astray: docs/rti.md)"
+                )
+        elif unread_held and not record["updated"] and not refit:
             from matscan.reconstruct.lightpos import estimate_held_gains
 
             gains, record["held_gains"] = estimate_held_gains(
@@ -460,22 +476,29 @@ def reconstruct_capture(
             why = (
                 "the intensities estimated from the photos re-render them no better than the capture's own"
                 if "rejected" in record
-                else "the diffuse reflection does not show the lights' intensities (a metal or a black fabric shows "
-                "too little)"
+                else f"only {record['photos_read']} of {len(capture.files)} photos show enough diffuse reflection to "
+                "read their light's intensity (a metal or a black fabric shows too little)"
             )
-            notes.append(
-                f"--self-calibrate-positions: {why}, so they were fitted with the maps, every light held at its place; "
-                + ("the calibration's" if placed else "the rig file's")
-                + " positions are kept (placed from such photos, a simulated knit, worn print and brushed metal's "
-                "lights went 20-87 mm astray: docs/rti-record.md)"
-                + (
-                    ""
-                    if placed
-                    else "; to place them, give --calibration the places of this dome merged from captures of samples "
-                    "that show them (matscan calibrate --merge of their self_calibration.json: docs/rti.md, "
-                    '"A dome calibrated once")'
+            if not cfg.self_calibrate_positions:
+                notes.append(
+                    f"--self-calibrate: {why}, so they were fitted with the maps, every light held at its place "
+                    "(docs/rti.md)"
                 )
-            )
+            else:
+                notes.append(
+                    f"--self-calibrate-positions: {why}, so they were fitted with the maps, every light held at its "
+                    "place; "
+                    + ("the calibration's" if placed else "the rig file's")
+                    + " positions are kept (placed from such photos, a simulated knit, worn print and brushed metal's "
+                    "lights went 20-87 mm astray: docs/rti-record.md)"
+                    + (
+                        ""
+                        if placed
+                        else "; to place them, give --calibration the places of this dome merged from captures of "
+                        "samples that show them (matscan calibrate --merge of their self_calibration.json: "
+                        'docs/rti.md, "A dome calibrated once")'
+                    )
+                )
         elif cfg.self_calibrate_positions:
             from matscan.reconstruct.lightpos import estimate_positions
 
@@ -486,6 +509,12 @@ def reconstruct_capture(
             )
             if lights is not None:
                 capture = replace(capture, lights=lights)
+        elif selfcal.HELD_GAINS == "always":
+            from matscan.reconstruct.lightpos import estimate_held_gains
+
+            gains, record["held_gains"] = estimate_held_gains(
+                capture, gains, cfg, progress, record["convention"] == "level sample"
+            )
         seconds = time.perf_counter() - t0
         result = reconstruct_capture(
             with_gains(capture, gains),
@@ -599,8 +628,9 @@ def reconstruct_capture(
     if refine and cfg.solver == "lm" and not cfg.emissive:
         t0 = time.perf_counter()
         strength = 1.0 if used_nets else anyrig_hold(n) if begun == "any-rig network" else FLAT_START_PRIOR
-        # the networks' start keeps the fixed steps' hold (lm's module doc)
-        lm_cfg = replace(cfg.lm, more_iterations=0) if used_nets else cfg.lm
+        # the networks' start keeps the fixed steps' hold below NETWORKS_MORE_FROM photos
+        held_start = used_nets and (NETWORKS_MORE_FROM is None or n < NETWORKS_MORE_FROM)
+        lm_cfg = replace(cfg.lm, more_iterations=0) if held_start else cfg.lm
         result.maps, result.confidence, result.intensity_scale = solve_maps(
             start, capture, lm_cfg, strength, progress=progress
         )

@@ -159,6 +159,13 @@ CHOOSE = True
 #: held on draws 5 and 6 (not used to choose it): tilted 5°, it changed one material of
 #: 50, +0.40 dB; level, with the LEDs' gradients and without, none of 100. None: off.
 TIE_GRADIENT: float | None = 0.15
+#: Where ``--self-calibrate`` without the positions fits the intensities jointly with the
+#: maps, every light held at its place (:func:`matscan.reconstruct.lightpos.estimate_held_gains`):
+#: "off", never (the estimate kept, or the capture's own intensities where it is not);
+#: "unread", where ``--self-calibrate-positions`` does (the estimate not kept and the
+#: capture's intensities not a calibration's that re-render as well); "always", there and
+#: from every kept estimate too. runs/selfcal-held/README.md has the rule and the runs.
+HELD_GAINS = "unread"
 
 
 def reduced(capture: Capture, factor: int) -> Capture:
